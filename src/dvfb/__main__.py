@@ -1,0 +1,5 @@
+import sys
+
+from dvfb.cli import main
+
+sys.exit(main())

@@ -1,0 +1,26 @@
+"""User-facing errors.
+
+Anything a user can cause with bad input (an unknown task, a corrupt run directory, a mismatched
+checkpoint) raises a subclass of :class:`DvfbError`. The CLI turns these into a one-line message and
+a non-zero exit instead of a traceback.
+"""
+
+
+class DvfbError(Exception):
+    """Base class for errors caused by user input or run state, reported without a traceback."""
+
+
+class ConfigError(DvfbError, ValueError):
+    """An unknown option, an invalid value or an inconsistent configuration."""
+
+
+class RunDirError(DvfbError):
+    """A run directory is missing, incomplete, corrupt, or would be overwritten."""
+
+
+class CheckpointError(DvfbError):
+    """A checkpoint cannot be read, or belongs to another agent or configuration."""
+
+
+class NonFiniteLossError(DvfbError, FloatingPointError):
+    """A loss became NaN or inf; training stops and keeps the last good checkpoint."""

@@ -1,0 +1,437 @@
+"""In-memory episodic replay buffer (spec section 6; invariant 30 of section 13).
+
+What is stored
+    Every environment step of every stored episode: the observation, the action taken in it, the
+    reward and environment discount returned with the next observation, and the rollout task
+    vector z (``z_dim`` may be 0 for agents without one). Everything is float32.
+
+Layout
+    One preallocated array ``data[num_slots, max_episode_length + 1, width]``: an episode per slot,
+    a row per time step, and the fields side by side in a row::
+
+        width = obs_dim | action_dim | 1 (reward) | 1 (env discount) | z_dim
+
+    Row ``t`` of an episode holds ``obs_t`` and the action, reward, discount and z of step ``t``
+    (reward and discount are the ones the environment returned together with ``obs_{t+1}``).
+    Row ``T`` of an episode of ``T`` steps holds only the final observation; its other fields are
+    unused. So transition ``t`` is ``(obs_t, action_t, reward_t, discount_t, obs_{t+1}, obs_{t+2},
+    z_t)`` and is read from rows ``t``, ``t+1`` and ``t+2`` of one slot: it can never cross an
+    episode boundary. The spec's "dummy zero action at the reset step" is the same information
+    shifted by one row.
+
+Eviction
+    Slots form a ring, oldest episode first. Capacity is counted in transitions: whenever a step
+    would make the buffer hold more than ``capacity`` transitions, whole episodes are dropped,
+    oldest first (the FIFO-by-episode rule of section 6). There are ``capacity //
+    max_episode_length + 1`` slots, enough to hold ``capacity`` transitions of full-length
+    episodes (DMC episodes always are) plus the episode in progress. With shorter episodes the
+    slots run out first and the oldest episode is dropped to free one, so the buffer then holds
+    fewer than ``capacity`` transitions.
+
+Sampling
+    Uniform over all stored transitions, the episode in progress included (section 6 allows it):
+    a single ``randint`` over the total count, mapped to (episode, step) with ``searchsorted`` on
+    the cumulative per-episode counts. This is exactly uniform even when episode lengths differ
+    ([C] samples episode-then-step, which is the same for fixed-length episodes). With
+    ``need_future=True`` only transitions whose ``obs_{t+2}`` is in the same episode are eligible,
+    so an episode of ``T`` steps contributes ``T - 1`` (the FB sampler of [C] does the same).
+    Episodes are indexed in ring order (oldest first), so a sample depends only on the stored
+    content and the generator, not on which slot an episode happens to occupy: a buffer restored
+    from :meth:`ReplayBuffer.state_dict` draws identical batches.
+
+Devices
+    On CPU the array is a numpy array and the sampler reads it through a zero-copy
+    ``torch.from_numpy`` view, so a step costs a few small numpy writes. On an accelerator the
+    array is a device tensor; steps of the episode in progress are written into a host staging
+    copy of one episode and the rows not yet on the device are copied over in one transfer before
+    each sample (never per step).
+
+Memory
+    ``estimate_nbytes(2_000_000, 24, 6, 50)`` (2M Walker transitions: obs 24, action 6, z 50,
+    float32, episodes of 1000 steps) = 657,000,336 bytes (626.6 MiB): 2,001 slots x 1,001 rows x
+    82 floats, plus 16,008 bytes of episode lengths. The host staging copy used on an accelerator
+    (one episode, 328 kB here) is not counted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from dvfb.errors import CheckpointError, ConfigError
+
+_STATE_FORMAT = 1
+_BYTES_PER_FLOAT = 4
+_BYTES_PER_LENGTH = 8
+
+
+@dataclass
+class Batch:
+    """A batch of transitions, all tensors on the buffer's device.
+
+    ``reward`` and ``discount`` have shape (B, 1); ``discount`` is ``gamma * env_discount`` (n-step
+    with n = 1, spec section 6). ``future_obs`` is ``obs_{t+2}`` when it was requested, else None.
+    ``z`` is the stored rollout task vector, (B, z_dim), or None when the buffer has ``z_dim = 0``.
+    """
+
+    obs: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    discount: torch.Tensor
+    next_obs: torch.Tensor
+    future_obs: torch.Tensor | None
+    z: torch.Tensor | None
+
+    def __len__(self) -> int:
+        return self.obs.shape[0]
+
+    def to(self, device: str | torch.device) -> Batch:
+        """The same batch with every tensor moved to ``device``."""
+
+        def move(x: torch.Tensor | None) -> torch.Tensor | None:
+            return None if x is None else x.to(device)
+
+        return Batch(move(self.obs), move(self.action), move(self.reward), move(self.discount),
+                     move(self.next_obs), move(self.future_obs), move(self.z))
+
+
+def _num_slots(capacity: int, max_episode_length: int) -> int:
+    # capacity // L full episodes can be stored whole, plus one slot for the episode in progress.
+    return capacity // max_episode_length + 1
+
+
+class ReplayBuffer:
+    """Preallocated FIFO replay buffer of whole episodes, sampled uniformly per transition.
+
+    See the module docstring for the layout, eviction and sampling rules (spec section 6).
+
+    Args:
+        capacity: maximum number of stored transitions; at least ``max_episode_length``.
+        obs_dim, action_dim, z_dim: sizes of one observation, action and task vector.
+        max_episode_length: most steps one episode may have (1000 in DMC).
+        device: where the storage lives and batches are returned.
+        stage_on_host: write steps into a host staging episode and copy them to the storage before
+            sampling. Default: only when ``device`` is not the CPU. Forcing it on CPU exercises the
+            accelerator code path in tests.
+    """
+
+    def __init__(self, capacity: int, obs_dim: int, action_dim: int, z_dim: int = 0,
+                 max_episode_length: int = 1000, device: str | torch.device = "cpu",
+                 stage_on_host: bool | None = None) -> None:
+        for name, value, minimum in (("capacity", capacity, 1), ("obs_dim", obs_dim, 1),
+                                     ("action_dim", action_dim, 1), ("z_dim", z_dim, 0),
+                                     ("max_episode_length", max_episode_length, 1)):
+            integer = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+            if not integer or value < minimum:
+                raise ConfigError(
+                    f"replay buffer {name} must be an integer >= {minimum}, got {value!r}")
+        if capacity < max_episode_length:
+            raise ConfigError(
+                f"replay capacity ({capacity}) must be at least max_episode_length "
+                f"({max_episode_length}), so that the episode in progress always fits"
+            )
+        self.capacity = int(capacity)
+        self.obs_dim = int(obs_dim)
+        self.action_dim = int(action_dim)
+        self.z_dim = int(z_dim)
+        self.max_episode_length = int(max_episode_length)
+        self.num_slots = _num_slots(self.capacity, self.max_episode_length)
+        self.device = torch.device(device)
+        self._staged = self.device.type != "cpu" if stage_on_host is None else bool(stage_on_host)
+        if not self._staged and self.device.type != "cpu":
+            raise ConfigError(f"a replay buffer on {self.device} needs stage_on_host")
+
+        # Column layout of one row.
+        self._action_col = self.obs_dim
+        self._reward_col = self._action_col + self.action_dim
+        self._discount_col = self._reward_col + 1
+        self._z_col = self._discount_col + 1
+        self.width = self._z_col + self.z_dim
+
+        rows = self.max_episode_length + 1
+        shape = (self.num_slots, rows, self.width)
+        if self._staged:
+            self._store = torch.zeros(shape, dtype=torch.float32, device=self.device)
+            host = np.zeros((1, rows, self.width), dtype=np.float32)
+        else:
+            host = np.zeros(shape, dtype=np.float32)
+            self._store = torch.from_numpy(host)
+        self._host = host
+        # Field views of the array that `add` writes into (storage on CPU, staging otherwise).
+        self._w_obs = host[:, :, : self.obs_dim]
+        self._w_action = host[:, :, self._action_col: self._reward_col]
+        self._w_reward = host[:, :, self._reward_col]
+        self._w_discount = host[:, :, self._discount_col]
+        self._w_z = host[:, :, self._z_col:]
+        # Field views of the storage that sampling reads (torch, on `device`).
+        self._s_obs = self._store[:, :, : self.obs_dim]
+        self._s_action = self._store[:, :, self._action_col: self._reward_col]
+        self._s_reward = self._store[:, :, self._reward_col: self._reward_col + 1]
+        self._s_discount = self._store[:, :, self._discount_col: self._discount_col + 1]
+        self._s_z = self._store[:, :, self._z_col:]
+
+        self._lengths = np.zeros(self.num_slots, dtype=np.int64)  # transitions per slot
+        self._reset_bookkeeping()
+
+    def _reset_bookkeeping(self) -> None:
+        self._lengths[:] = 0
+        self._first = 0            # slot of the oldest stored episode
+        self._num_episodes = 0     # slots in use, the episode in progress included
+        self._num_transitions = 0
+        self._open = False         # whether `add` may extend the newest episode
+        self._cur_slot = 0
+        self._cur_len = 0
+        self._write_slot = 0       # index into the host array: the slot on CPU, 0 when staged
+        self._flushed_rows = 0     # staged rows [0, _flushed_rows) are complete on the device
+
+    # ------------------------------------------------------------------------------------------
+    # sizes
+
+    @staticmethod
+    def estimate_nbytes(capacity: int, obs_dim: int, action_dim: int, z_dim: int,
+                        max_episode_length: int = 1000) -> int:
+        """Bytes of preallocated storage for these sizes (the value :attr:`nbytes` will have)."""
+        slots = _num_slots(capacity, max_episode_length)
+        width = obs_dim + action_dim + 2 + z_dim
+        return (slots * (max_episode_length + 1) * width * _BYTES_PER_FLOAT
+                + slots * _BYTES_PER_LENGTH)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of all preallocated storage (host staging on an accelerator excluded)."""
+        return self._store.numel() * self._store.element_size() + self._lengths.nbytes
+
+    @property
+    def num_episodes(self) -> int:
+        """Stored episodes, the one in progress included."""
+        return self._num_episodes
+
+    def __len__(self) -> int:
+        """Stored transitions."""
+        return self._num_transitions
+
+    # ------------------------------------------------------------------------------------------
+    # writing
+
+    def start_episode(self, obs: np.ndarray) -> None:
+        """Begin a new episode with its reset observation."""
+        if not (self._open and self._cur_len == 0):
+            # (An episode without steps is simply restarted in its slot.)
+            self._flush()
+            if self._num_episodes == self.num_slots:
+                self._evict_oldest()
+            self._cur_slot = (self._first + self._num_episodes) % self.num_slots
+            self._num_episodes += 1
+            self._cur_len = 0
+            self._lengths[self._cur_slot] = 0
+            self._write_slot = 0 if self._staged else self._cur_slot
+            self._open = True
+        self._flushed_rows = 0
+        self._w_obs[self._write_slot, 0] = obs
+
+    def add(self, action, reward: float, discount: float, next_obs, z=None) -> None:
+        """Record one environment step of the current episode.
+
+        ``action`` was taken in the latest observation; ``reward`` and ``discount`` are what the
+        environment returned together with ``next_obs``; ``z`` is the task vector the action was
+        chosen for (required when ``z_dim > 0``).
+        """
+        t = self._cur_len
+        if t >= self.max_episode_length or not self._open:
+            self._raise_cannot_add()
+        w = self._write_slot
+        self._w_action[w, t] = action
+        self._w_reward[w, t] = reward
+        self._w_discount[w, t] = discount
+        self._w_obs[w, t + 1] = next_obs
+        if self.z_dim:
+            if z is None:
+                raise ValueError(f"this replay buffer stores z (z_dim={self.z_dim}); pass z=")
+            self._w_z[w, t] = z
+        self._cur_len = t + 1
+        self._lengths[self._cur_slot] = t + 1
+        self._num_transitions += 1
+        while self._num_transitions > self.capacity:
+            self._evict_oldest()
+
+    def _raise_cannot_add(self) -> None:
+        if not self._open:
+            raise RuntimeError("ReplayBuffer.add called before start_episode")
+        raise ConfigError(
+            f"episode already has max_episode_length={self.max_episode_length} steps; the "
+            "environment's episodes are longer than the replay buffer was sized for (raise "
+            "max_episode_length) or start_episode was not called at the reset"
+        )
+
+    def _evict_oldest(self) -> None:
+        slot = self._first
+        if self._open and slot == self._cur_slot:
+            # Unreachable while capacity >= max_episode_length and num_slots >= 2.
+            raise AssertionError("replay buffer tried to evict the episode in progress")
+        self._num_transitions -= int(self._lengths[slot])
+        self._lengths[slot] = 0
+        self._first = (slot + 1) % self.num_slots
+        self._num_episodes -= 1
+
+    def _flush(self) -> None:
+        """Copy the staged rows of the episode in progress that the device lacks (one transfer)."""
+        if not self._staged or not self._open:
+            return
+        # Row `_cur_len` holds only the newest observation so far; its action fields arrive with
+        # the next step, so it is copied again by the next flush.
+        begin, end = self._flushed_rows, self._cur_len + 1
+        if begin < end:
+            rows = torch.from_numpy(self._host[0, begin:end])
+            self._store[self._cur_slot, begin:end].copy_(rows)
+            self._flushed_rows = self._cur_len
+
+    # ------------------------------------------------------------------------------------------
+    # reading
+
+    def _ring_slots(self) -> np.ndarray:
+        return (self._first + np.arange(self._num_episodes)) % self.num_slots
+
+    def sample(self, batch_size: int, gamma: float = 0.99, need_future: bool = False,
+               generator: torch.Generator | None = None) -> Batch:
+        """Draw ``batch_size`` transitions uniformly with replacement (spec section 6).
+
+        With ``need_future`` only transitions whose ``obs_{t+2}`` exists in the same episode are
+        eligible and the batch has ``future_obs``. ``generator`` makes the draw reproducible; the
+        indices are drawn on its device.
+        """
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        slots = self._ring_slots()
+        counts = self._lengths[slots]
+        if need_future:
+            counts = np.maximum(counts - 1, 0)
+        cumulative = np.cumsum(counts)
+        total = int(cumulative[-1]) if len(cumulative) else 0
+        if total == 0:
+            what = "with a two-step successor " if need_future else ""
+            raise ValueError(f"cannot sample: the replay buffer holds no transition {what}yet")
+
+        index_device = generator.device if generator is not None else torch.device("cpu")
+        draws = torch.randint(total, (batch_size,), generator=generator, device=index_device)
+        cumulative_t = torch.from_numpy(cumulative).to(index_device)
+        episode = torch.searchsorted(cumulative_t, draws, right=True)
+        step = draws - (cumulative_t[episode] - torch.from_numpy(counts).to(index_device)[episode])
+        slot = torch.from_numpy(slots).to(index_device)[episode]
+        self._flush()
+        return self._gather(slot.to(self.device), step.to(self.device), gamma, need_future)
+
+    def transitions(self, gamma: float = 0.99) -> Batch:
+        """Every stored transition once, oldest episode first and in time order within an episode.
+
+        Used for zero-shot task inference on reward-labelled data (spec section 8.1).
+        ``future_obs`` is None.
+        """
+        slots = self._ring_slots()
+        counts = self._lengths[slots]
+        total = int(counts.sum())
+        starts = np.cumsum(counts) - counts
+        slot = np.repeat(slots, counts)
+        step = np.arange(total) - np.repeat(starts, counts)
+        self._flush()
+        return self._gather(torch.from_numpy(slot).to(self.device),
+                            torch.from_numpy(step).to(self.device), gamma, need_future=False)
+
+    def _gather(self, slot: torch.Tensor, step: torch.Tensor, gamma: float,
+                need_future: bool) -> Batch:
+        return Batch(
+            obs=self._s_obs[slot, step],
+            action=self._s_action[slot, step],
+            reward=self._s_reward[slot, step],
+            discount=self._s_discount[slot, step] * gamma,
+            next_obs=self._s_obs[slot, step + 1],
+            future_obs=self._s_obs[slot, step + 2] if need_future else None,
+            z=self._s_z[slot, step] if self.z_dim else None,
+        )
+
+    # ------------------------------------------------------------------------------------------
+    # checkpointing
+
+    def _shape_info(self) -> dict:
+        return {"capacity": self.capacity, "obs_dim": self.obs_dim,
+                "action_dim": self.action_dim, "z_dim": self.z_dim,
+                "max_episode_length": self.max_episode_length}
+
+    def state_dict(self) -> dict:
+        """The stored episodes, compactly (only filled rows), as CPU tensors and plain values.
+
+        Loadable with ``torch.load(weights_only=True)``. Slot positions are not kept: episodes are
+        saved in ring order, which is all that sampling depends on.
+        """
+        self._flush()
+        slots = self._ring_slots()
+        lengths = self._lengths[slots].copy()
+        rows_per_episode = lengths + 1
+        slot_index = np.repeat(slots, rows_per_episode)
+        row_index = np.arange(int(rows_per_episode.sum())) - np.repeat(
+            np.cumsum(rows_per_episode) - rows_per_episode, rows_per_episode)
+        rows = self._store[torch.from_numpy(slot_index).to(self.device),
+                           torch.from_numpy(row_index).to(self.device)].cpu()
+        return {"format": _STATE_FORMAT, **self._shape_info(),
+                "episode_open": self._open, "lengths": torch.from_numpy(lengths), "rows": rows}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore what :meth:`state_dict` saved; raises CheckpointError when it does not fit."""
+        try:
+            if state.get("format") != _STATE_FORMAT:
+                raise CheckpointError(
+                    f"replay state has format {state.get('format')!r}, expected {_STATE_FORMAT}")
+            mismatched = [f"{k}: saved {state.get(k)!r}, buffer {v!r}"
+                          for k, v in self._shape_info().items() if state.get(k) != v]
+            if mismatched:
+                raise CheckpointError("replay state does not match this buffer ("
+                                      + "; ".join(mismatched) + ")")
+            lengths = torch.as_tensor(state["lengths"]).to(torch.int64).numpy()
+            rows = torch.as_tensor(state["rows"])
+            episode_open = bool(state["episode_open"])
+        except CheckpointError:
+            raise
+        except (KeyError, TypeError, AttributeError, RuntimeError) as exc:
+            raise CheckpointError(f"replay state is incomplete or malformed: {exc!r}") from exc
+        num_episodes = len(lengths)
+        expected_rows = int((lengths + 1).sum())
+        problems = []
+        if lengths.ndim != 1 or num_episodes > self.num_slots:
+            problems.append(f"{num_episodes} episodes for {self.num_slots} slots")
+        if num_episodes and (lengths.min() < 0 or lengths.max() > self.max_episode_length):
+            problems.append("an episode length outside [0, max_episode_length]")
+        if int(lengths.sum()) > self.capacity:
+            problems.append(f"{int(lengths.sum())} transitions for capacity {self.capacity}")
+        if tuple(rows.shape) != (expected_rows, self.width) or rows.dtype != torch.float32:
+            problems.append(f"rows of shape {tuple(rows.shape)} and dtype {rows.dtype}, expected "
+                            f"({expected_rows}, {self.width}) float32")
+        if episode_open and num_episodes == 0:
+            problems.append("an open episode but no episodes")
+        if problems:
+            raise CheckpointError("replay state is inconsistent: " + "; ".join(problems))
+
+        self._reset_bookkeeping()
+        if self._staged:
+            self._store.zero_()
+        else:
+            self._host.fill(0.0)
+        rows_per_episode = lengths + 1
+        slot_index = np.repeat(np.arange(num_episodes), rows_per_episode)
+        row_index = np.arange(expected_rows) - np.repeat(
+            np.cumsum(rows_per_episode) - rows_per_episode, rows_per_episode)
+        self._store[torch.from_numpy(slot_index).to(self.device),
+                    torch.from_numpy(row_index).to(self.device)] = rows.to(self.device)
+        self._lengths[:num_episodes] = lengths
+        self._num_episodes = num_episodes
+        self._num_transitions = int(lengths.sum())
+        self._open = episode_open
+        if episode_open:
+            self._cur_slot = num_episodes - 1
+            self._cur_len = int(lengths[-1])
+            self._write_slot = 0 if self._staged else self._cur_slot
+            if self._staged:
+                # The staging copy must hold the episode in progress; all of it is on the device.
+                last = rows[expected_rows - self._cur_len - 1:].numpy()
+                self._host[0, : self._cur_len + 1] = last
+                self._flushed_rows = self._cur_len
