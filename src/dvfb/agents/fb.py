@@ -1,0 +1,368 @@
+"""Online forward-backward (FB) agent: networks, losses and the pre-training update.
+
+Implements algorithm.md §4.1-§4.3, §5 (task vectors), §7.8-§7.11 (FB loss, auxiliary implicit-
+reward Q loss, orthonormality, actor) and §8.2 (z inference). DVFB (:mod:`dvfb.agents.dvfb`) is this
+agent plus an exploration critic; the update is written with one hook, :meth:`FBAgent._explore`,
+and one extra actor term, :meth:`FBAgent._actor_bonus`, that DVFB overrides.
+
+Performance notes (issue "Performance"): each forward pass is computed once per update and reused
+-- the online B of the batch feeds the FB loss, the auxiliary Q loss, the orthonormality loss and
+(detached) DVFB's contrastive labels; the target-policy next action feeds every TD target; twin
+heads are one batched product. Metrics are returned as device tensors; nothing here calls
+``.item()``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from dvfb.config import param
+from dvfb.nets import (
+    Actor,
+    BackwardMap,
+    ForwardMap,
+    make_target,
+    project_to_sphere,
+    rollout_action,
+    sample_z_prior,
+    skill_values,
+    soft_update_,
+    training_action,
+)
+from dvfb.replay import Batch
+
+log = logging.getLogger(__name__)
+
+BACKWARD_INPUTS = ("state", "transition", "code_exact")
+
+
+@dataclass
+class FBConfig:
+    """Hyper-parameters of the FB representation and its actor (algorithm.md §12, §14)."""
+
+    z_dim: int = param(50, "Dimension d of F, B and the task vector z.")
+    hidden_dim: int = param(1024, "Hidden width H of the actor, F and the critics.")
+    feature_dim: int = param(512, "Feature width E of each two-stream encoder (actor, F).")
+    backward_hidden_dim: int = param(526, "Hidden width Hb of the backward map B.")
+    actor_arch: str = param("two_stream", "Actor architecture (§4.1).", ("two_stream", "mlp"))
+    backward_input: str = param("state", "What B reads: s' (state), (s, s') (transition) or the "
+                                "authors' pairings (code_exact), see D1.", BACKWARD_INPUTS)
+    batch_size: int = param(1024, "Transitions per gradient update.")
+    lr: float = param(1e-4, "Adam learning rate of every network.")
+    backward_lr_coef: float = param(1.0, "B's learning rate as a multiple of lr.")
+    discount: float = param(0.99, "Discount gamma.")
+    tau: float = param(0.01, "EMA rate of the target networks (after every update).")
+    stddev: float = param(0.2, "Fixed policy standard deviation sigma.")
+    stddev_clip: float = param(0.3, "Noise clip of training samples.")
+    mix_ratio: float = param(0.5, "Fraction of training z's replaced by projected B of replay states.")
+    ortho_coef: float = param(1.0, "Weight lambda of the orthonormality loss.")
+    q_loss: bool = param(True, "Add the auxiliary implicit-reward Q loss (D10).")
+    q_loss_coef: float = param(0.01, "Weight of the auxiliary Q loss.")
+    cov_ridge: float = param(0.0, "Ridge added to Cov(B) before solving Cov x = z (D19).")
+    fused_adam: bool = param(True, "Use torch's fused (single-kernel) Adam where available.")
+
+
+def adam(params, lr: float, fused: bool) -> torch.optim.Adam:
+    """Adam with default betas/eps and no weight decay (§3.6); fused when asked and possible."""
+    params = list(params)
+    if fused:
+        try:
+            return torch.optim.Adam(params, lr=lr, fused=True)
+        except (RuntimeError, TypeError):  # pragma: no cover - backend without fused Adam
+            pass
+    return torch.optim.Adam(params, lr=lr, foreach=True)
+
+
+def offdiag_mean(matrix: torch.Tensor) -> torch.Tensor:
+    """Mean over ``i != j`` of the last two (square) dimensions, without building a mask."""
+    n = matrix.shape[-1]
+    total = matrix.sum(dim=(-2, -1))
+    diag = matrix.diagonal(dim1=-2, dim2=-1).sum(-1)
+    return (total - diag) / (n * (n - 1))
+
+
+def implicit_reward(backward: torch.Tensor, z: torch.Tensor, ridge: float = 0.0) -> torch.Tensor:
+    """``r_i = B_i Cov^{-1} z_i`` with ``Cov = B^T B / N`` (§7.9, §9.4), by a linear solve.
+
+    ``z`` is ``(N, d)`` (one z per row) or ``(d,)`` (one z for all rows). Returns ``(N,)``.
+    """
+    n, d = backward.shape
+    cov = backward.T @ backward / n
+    if ridge:
+        cov = cov + ridge * torch.eye(d, device=backward.device, dtype=backward.dtype)
+    rhs = z.T if z.dim() == 2 else z.unsqueeze(-1)
+    solution, _info = torch.linalg.solve_ex(cov, rhs)  # solve_ex: no host sync on failure
+    if z.dim() == 2:
+        return (backward * solution.T).sum(-1)
+    return backward @ solution.squeeze(-1)
+
+
+def infer_z_from_rewards(features: torch.Tensor, rewards: torch.Tensor,
+                         quantile: float | None) -> tuple[torch.Tensor, dict]:
+    """z_r = proj(mean over kept samples of r_i B_i) with the optional top-quantile filter (§8.2).
+
+    If the weighted mean is (about) zero, retry without the filter; if it is still zero, return a
+    zero vector and ``info["fallback"] = "zero"`` so the caller can draw a prior sample.
+    """
+    rewards = rewards.reshape(-1)
+    info: dict = {"num_samples": int(rewards.numel()), "quantile": quantile, "fallback": None}
+    keep = torch.ones_like(rewards, dtype=torch.bool)
+    if quantile is not None:
+        threshold = torch.quantile(rewards.double(), quantile).to(rewards.dtype)
+        keep = rewards >= threshold
+    z_raw = (rewards[keep].unsqueeze(-1) * features[keep]).mean(0)
+    info["num_kept"] = int(keep.sum())
+    if float(z_raw.norm()) < 1e-8 and quantile is not None:
+        log.warning("inferred z is ~0 with the %.3g reward quantile filter; retrying without it", quantile)
+        z_raw = (rewards.unsqueeze(-1) * features).mean(0)
+        info["fallback"] = "no_filter"
+        info["num_kept"] = int(rewards.numel())
+    if float(z_raw.norm()) < 1e-8:
+        info["fallback"] = "zero"
+        return torch.zeros_like(z_raw), info
+    return project_to_sphere(z_raw), info
+
+
+class FBAgent(nn.Module):
+    """Online FB: reward-free pre-training of F, B and pi(s, z) (algorithm.md §7 with alpha = 0)."""
+
+    name = "fb"
+
+    def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, device: str | torch.device = "cpu"):
+        super().__init__()
+        self.obs_dim, self.action_dim, self.config = obs_dim, action_dim, config
+        c = config
+        if c.backward_input not in BACKWARD_INPUTS:
+            raise ValueError(f"backward_input must be one of {BACKWARD_INPUTS}, got {c.backward_input!r}")
+        backward_in = obs_dim if c.backward_input == "state" else 2 * obs_dim
+        self.actor = Actor(obs_dim, c.z_dim, action_dim, c.hidden_dim, c.feature_dim, c.actor_arch)
+        self.forward_map = ForwardMap(obs_dim, action_dim, c.z_dim, c.hidden_dim, c.feature_dim)
+        self.backward_map = BackwardMap(backward_in, c.backward_hidden_dim, c.z_dim)
+        self.forward_target = make_target(self.forward_map)
+        self.backward_target = make_target(self.backward_map)
+        self._build_extra()
+        self.to(device)
+        self.device = torch.device(device)
+        self.fb_optimizer = adam(
+            [{"params": self.forward_map.parameters()},
+             {"params": self.backward_map.parameters(), "lr": c.lr * c.backward_lr_coef}],
+            lr=c.lr, fused=c.fused_adam)
+        self.actor_optimizer = adam(self.actor.parameters(), c.lr, c.fused_adam)
+        self._build_extra_optimizers()
+
+    # Hooks for subclasses -------------------------------------------------------------------
+    def _build_extra(self) -> None:
+        """Create additional networks (DVFB: exploration critic, RND, encoders)."""
+
+    def _build_extra_optimizers(self) -> None:
+        """Create optimisers of the additional networks."""
+
+    def _explore(self, batch: Batch, z: torch.Tensor, next_action: torch.Tensor,
+                 labels: torch.Tensor, metrics: dict) -> None:
+        """Exploration updates before the FB step (DVFB: RND, encoders, Q_P). FB: nothing."""
+
+    def _actor_bonus(self, obs: torch.Tensor, z: torch.Tensor, action: torch.Tensor,
+                     skill_value: torch.Tensor, metrics: dict) -> torch.Tensor | None:
+        """Extra per-sample actor objective (DVFB: alpha * Q_P). FB: none."""
+        return None
+
+    def _extra_soft_updates(self) -> None:
+        """EMA of additional targets (DVFB: Q_P)."""
+
+    # Acting ------------------------------------------------------------------------------------
+    def sample_z(self, n: int = 1) -> torch.Tensor:
+        return sample_z_prior(n, self.config.z_dim, self.device)
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, z: torch.Tensor, explore: bool) -> np.ndarray:
+        """One action for one observation: a rollout sample if ``explore``, else the mean (§3.3)."""
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
+        mean = self.actor(obs_t, z.reshape(1, -1))
+        action = rollout_action(mean, self.config.stddev) if explore else mean
+        return action[0].cpu().numpy()
+
+    # Backward-map inputs (D1) -----------------------------------------------------------------
+    def backward_inputs(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor]:
+        """The (online, target) inputs of B for the columns of the FB loss."""
+        mode = self.config.backward_input
+        if mode == "state":
+            return batch.next_obs, batch.next_obs
+        if mode == "transition":
+            pair = torch.cat([batch.obs, batch.next_obs], dim=-1)
+            return pair, pair
+        # code_exact (D1 a): online B(s_t, s_{t+2}), target B(s_{t+1}, s_{t+2}).
+        if batch.future_obs is None:
+            raise ValueError("backward_input='code_exact' needs batches sampled with need_future=True")
+        return (torch.cat([batch.obs, batch.future_obs], dim=-1),
+                torch.cat([batch.next_obs, batch.future_obs], dim=-1))
+
+    def label_input(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """B's input for skill labels, z inference and reward mapping: s' or (s, s') (D1 c)."""
+        if self.config.backward_input == "state":
+            return next_obs
+        return torch.cat([obs, next_obs], dim=-1)
+
+    @torch.no_grad()
+    def backward_features(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """Online B of transitions, as used for inference and reward mapping (§8.2, §9.4)."""
+        return self.backward_map(self.label_input(obs, next_obs))
+
+    @torch.no_grad()
+    def training_z(self, batch: Batch) -> torch.Tensor:
+        """Prior z's with a ``mix_ratio`` share replaced by projected B of replay data (§5.3)."""
+        c = self.config
+        n = batch.obs.shape[0]
+        z = sample_z_prior(n, c.z_dim, self.device)
+        if c.mix_ratio <= 0:
+            return z
+        perm = torch.randperm(n, device=self.device)
+        if c.backward_input == "state":
+            goal_input = batch.obs[perm]
+        elif c.backward_input == "transition":
+            goal_input = torch.cat([batch.obs[perm], batch.next_obs[perm]], dim=-1)
+        else:  # code_exact (D1 b): pairs of unrelated states
+            goal_input = torch.cat([batch.obs, batch.obs[perm]], dim=-1)
+        goals = project_to_sphere(self.backward_map(goal_input))
+        replace = torch.rand(n, 1, device=self.device) < c.mix_ratio
+        return torch.where(replace, goals, z)
+
+    # The update ---------------------------------------------------------------------------------
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """One full pre-training update in the order of §7.2. Returns detached metric tensors."""
+        c = self.config
+        metrics: dict[str, torch.Tensor] = {}
+        z = self.training_z(batch)
+        with torch.no_grad():
+            next_action = training_action(self.actor(batch.next_obs, z), c.stddev, c.stddev_clip)
+        online_input, target_input = self.backward_inputs(batch)
+        backward = self.backward_map(online_input)  # reused by the FB, Q and ortho losses
+        if c.backward_input == "code_exact":
+            labels = self.backward_features(batch.obs, batch.next_obs)
+        else:
+            labels = backward.detach()
+        self._explore(batch, z, next_action, labels, metrics)
+        self._fb_step(batch, z, next_action, backward, target_input, metrics)
+        self._actor_step(batch.obs, z, metrics)
+        soft_update_(self.forward_target, self.forward_map, c.tau)
+        soft_update_(self.backward_target, self.backward_map, c.tau)
+        self._extra_soft_updates()
+        return metrics
+
+    def fb_losses(self, batch: Batch, z: torch.Tensor, next_action: torch.Tensor,
+                  backward: torch.Tensor, target_input: torch.Tensor) -> dict[str, torch.Tensor]:
+        """FB loss (§7.8), auxiliary Q loss (§7.9) and orthonormality loss (§7.10)."""
+        c = self.config
+        discount = batch.discount  # (N, 1): scales row i
+        with torch.no_grad():
+            target_forward = self.forward_target(batch.next_obs, next_action, z)  # (2, N, d)
+            target_backward = self.backward_target(target_input)  # (N, d)
+            target_m = torch.matmul(target_forward, target_backward.T).amin(0)  # (N, N)
+        forward = self.forward_map(batch.obs, batch.action, z)  # (2, N, d)
+        m = torch.matmul(forward, backward.T)  # (2, N, N)
+        offdiag = offdiag_mean((m - discount * target_m).pow(2))  # (2,)
+        diag = m.diagonal(dim1=-2, dim2=-1).mean(-1)  # (2,)
+        fb_loss = (0.5 * offdiag - diag).sum()
+
+        gram = backward @ backward.T
+        ortho_loss = offdiag_mean(gram.pow(2)) - 2 * gram.diagonal().mean()
+        losses = {"fb_loss": fb_loss, "fb_offdiag": offdiag.mean(), "fb_diag": diag.mean(),
+                  "ortho_loss": ortho_loss}
+        total = fb_loss + c.ortho_coef * ortho_loss
+        if c.q_loss:
+            with torch.no_grad():
+                reward = implicit_reward(backward.detach(), z, c.cov_ridge)
+                next_q = skill_values(target_forward, z).amin(0)
+                target_q = reward + discount.squeeze(-1) * next_q
+            q = skill_values(forward, z)  # (2, N)
+            q_loss = (q - target_q).pow(2).mean(-1).sum()
+            losses["fb_q_loss"] = q_loss
+            total = total + c.q_loss_coef * q_loss
+        losses["fb_total"] = total
+        return losses
+
+    def _fb_step(self, batch, z, next_action, backward, target_input, metrics) -> None:
+        losses = self.fb_losses(batch, z, next_action, backward, target_input)
+        self.fb_optimizer.zero_grad(set_to_none=True)
+        losses["fb_total"].backward()
+        self.fb_optimizer.step()
+        metrics.update({k: v.detach() for k, v in losses.items()})
+
+    def actor_loss(self, obs: torch.Tensor, z: torch.Tensor, metrics: dict) -> torch.Tensor:
+        """``-mean(Q_M + bonus)`` with ``Q_M = min_k F_k(s, a~, z) . z`` (§7.11)."""
+        c = self.config
+        action = training_action(self.actor(obs, z), c.stddev, c.stddev_clip)
+        skill_value = skill_values(self.forward_map(obs, action, z), z).amin(0)
+        objective = skill_value
+        bonus = self._actor_bonus(obs, z, action, skill_value, metrics)
+        if bonus is not None:
+            objective = objective + bonus
+        metrics["skill_value"] = skill_value.detach().mean()
+        return -objective.mean()
+
+    def _actor_step(self, obs: torch.Tensor, z: torch.Tensor, metrics: dict) -> None:
+        loss = self.actor_loss(obs, z, metrics)
+        self.actor_optimizer.zero_grad(set_to_none=True)
+        # Only the actor's leaves receive gradients: F and the critics are not touched (§7.11).
+        loss.backward(inputs=list(self.actor.parameters()))
+        self.actor_optimizer.step()
+        metrics["actor_loss"] = loss.detach()
+
+    # Zero-shot inference ------------------------------------------------------------------------
+    @torch.no_grad()
+    def infer_z(self, obs: torch.Tensor, next_obs: torch.Tensor, reward: torch.Tensor,
+                quantile: float | None = 0.99) -> tuple[torch.Tensor, dict]:
+        """z_r from reward-labelled transitions (§8.2); falls back to a prior draw if zero."""
+        features = self.backward_features(obs, next_obs)
+        z, info = infer_z_from_rewards(features, reward, quantile)
+        if info["fallback"] == "zero":
+            log.warning("inferred z is zero (all rewards 0?): falling back to a random z ~ p(z)")
+            z = self.sample_z(1)[0]
+            info["fallback"] = "prior"
+        return z, info
+
+    @torch.no_grad()
+    def infer_z_from_goal(self, goal_obs: torch.Tensor) -> torch.Tensor:
+        """z = proj(B(goal)) for a goal state (state mode) or goal transition (pair modes)."""
+        goal = goal_obs.reshape(1, -1).to(self.device, torch.float32)
+        if self.config.backward_input != "state" and goal.shape[-1] == self.obs_dim:
+            goal = torch.cat([goal, goal], dim=-1)  # a goal "transition" that stays at the goal
+        return project_to_sphere(self.backward_map(goal))[0]
+
+    @torch.no_grad()
+    def skill_value(self, obs: torch.Tensor, action: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """``Q_M = min_k F_k(s, a, z) . z`` for evaluation and analysis."""
+        zz = z.expand(obs.shape[0], -1) if z.dim() == 1 else z
+        return skill_values(self.forward_map(obs, action, zz), zz).amin(0)
+
+    # Checkpointing -------------------------------------------------------------------------------
+    def pretrained_modules(self) -> dict[str, nn.Module]:
+        """What fine-tuning and zero-shot need from pre-training (§7.1, §9.1)."""
+        return {"actor": self.actor, "forward_map": self.forward_map, "backward_map": self.backward_map,
+                "forward_target": self.forward_target, "backward_target": self.backward_target}
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"fb_optimizer": self.fb_optimizer, "actor_optimizer": self.actor_optimizer}
+
+    def training_state(self) -> dict:
+        """Networks, running statistics and optimiser states (for resume)."""
+        return {"modules": self.state_dict(),
+                "optimizers": {k: o.state_dict() for k, o in self.optimizers().items()}}
+
+    def load_training_state(self, state: dict) -> None:
+        self.load_state_dict(state["modules"])
+        for k, o in self.optimizers().items():
+            o.load_state_dict(state["optimizers"][k])
+
+
+def metric_floats(metrics: dict[str, torch.Tensor]) -> dict[str, float]:
+    """One host sync for a whole dict of 0-d metric tensors."""
+    if not metrics:
+        return {}
+    keys = list(metrics)
+    values = torch.stack([metrics[k].detach().float().reshape(()) for k in keys]).cpu().tolist()
+    return dict(zip(keys, values))

@@ -1,0 +1,132 @@
+"""Dual-value fine-tuning with reward mapping, for any FB-family agent (algorithm.md §9).
+
+F and B are frozen; a freshly initialised twin task critic Q_F learns from the downstream reward
+rescaled so that its running mean matches the running mean of FB's implicit reward, and the
+actor maximises ``qf_coef * Q_F + eta * Q_M``. Variants (§9.6): w/o SVF is ``eta = 0``, w/o MAP is
+``reward_mapping = false``, and ``eta_mode = adaptive`` uses ``eta_i = Q_F,i / Q_M,i`` (detached).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from dvfb.agents.fb import FBAgent, adam, implicit_reward
+from dvfb.config import param
+from dvfb.nets import RunningMeanStd, TwinCritic, freeze_, make_target, skill_values, soft_update_, training_action
+from dvfb.replay import Batch
+
+
+@dataclass
+class FinetuneConfig:
+    """Fine-tuning protocol and the dual-value options (algorithm.md §9, §12, §14)."""
+
+    frames: int = param(100_000, "Fine-tuning environment steps (the inference steps are not counted).")
+    eval_every: int = param(10_000, "Evaluate every this many fine-tuning steps (and at 0 and the end).")
+    eval_episodes: int = param(50, "Mean-action episodes per evaluation.")
+    seed_frames: int = param(4000, "Steps before the first update (policy actions, no uniform phase).")
+    update_every: int = param(2, "One update every this many steps.")
+    replay_capacity: int = param(1_000_000, "Fine-tuning replay capacity in transitions.")
+    eta: float = param(0.5, "Weight of the skill value Q_M in the actor objective; 0 = w/o SVF (D3).")
+    eta_mode: str = param("constant", "constant eta, or adaptive eta_i = Q_F,i / Q_M,i.", ("constant", "adaptive"))
+    qf_coef: float = param(1.0, "Weight of Q_F in the actor objective (authors' code: 50 with eta = 1).")
+    reward_mapping: bool = param(True, "Map the task reward to the implicit reward's scale; false = w/o MAP.")
+    reward_map_eps: float = param(1e-8, "eps in r * mu_fb / (mu_t + eps).")
+    reward_map_abs: bool = param(False, "Use |mu_fb| so a negative implicit mean cannot flip the reward sign.")
+    reward_map_clip: float | None = param(None, "Clip mapped rewards to [-c, c]; none = no clip.")
+    cov_ridge: float = param(0.0, "Ridge added to Cov(B) in the implicit reward.")
+    keep_inference_data: bool = param(False, "Seed the fine-tuning buffer with the inference transitions (D12).")
+    checkpoint_every: int = param(10_000, "Write a resume checkpoint every this many steps (at episode ends).")
+
+
+class DualValueFinetuner(nn.Module):
+    """Q_F training and the dual-value actor on top of a pre-trained FB-family agent (§9.2-§9.5)."""
+
+    def __init__(self, agent: FBAgent, z: torch.Tensor, config: FinetuneConfig):
+        super().__init__()
+        self.agent, self.config = agent, config
+        fb = agent.config
+        freeze_(agent.forward_map)
+        freeze_(agent.backward_map)
+        self.register_buffer("z", z.detach().clone().to(agent.device))
+        self.task_critic = TwinCritic(agent.obs_dim, agent.action_dim, fb.z_dim, fb.hidden_dim).to(agent.device)
+        self.task_critic_target = make_target(self.task_critic)
+        self.implicit_reward_stats = RunningMeanStd().to(agent.device)
+        self.task_reward_stats = RunningMeanStd().to(agent.device)
+        self.critic_optimizer = adam(self.task_critic.parameters(), fb.lr, fb.fused_adam)
+        # A fresh actor optimiser (§3.6: the authors do not carry the pre-training state over).
+        self.actor_optimizer = adam(agent.actor.parameters(), fb.lr, fb.fused_adam)
+
+    def mapped_reward(self, batch: Batch, metrics: dict) -> torch.Tensor:
+        """``r_f = r * mu_fb / (mu_t + eps)`` with running means (§9.4 steps 1-3). ``(N, 1)``."""
+        c = self.config
+        reward = batch.reward
+        if not c.reward_mapping:
+            return reward
+        with torch.no_grad():
+            features = self.agent.backward_features(batch.obs, batch.next_obs)
+            implicit = implicit_reward(features, self.z, c.cov_ridge)
+            mu_fb, _ = self.implicit_reward_stats.update(implicit)
+            mu_t, _ = self.task_reward_stats.update(reward)
+            if c.reward_map_abs:
+                mu_fb = mu_fb.abs()
+            scale = (mu_fb / (mu_t + c.reward_map_eps)).to(reward.dtype)
+            mapped = reward * scale
+            if c.reward_map_clip is not None:
+                mapped = mapped.clamp(-c.reward_map_clip, c.reward_map_clip)
+        metrics["implicit_reward_mean"] = mu_fb.float()
+        metrics["task_reward_mean"] = mu_t.float()
+        metrics["mapped_reward"] = mapped.mean()
+        return mapped
+
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        fb = self.agent.config
+        actor = self.agent.actor
+        metrics: dict[str, torch.Tensor] = {}
+        n = batch.obs.shape[0]
+        z = self.z.expand(n, -1)
+        reward = self.mapped_reward(batch, metrics)
+        with torch.no_grad():
+            next_action = training_action(actor(batch.next_obs, z), fb.stddev, fb.stddev_clip)
+            next_q = self.task_critic_target(batch.next_obs, z, next_action).amin(0)
+            target = reward + batch.discount * next_q
+        q = self.task_critic(batch.obs, z, batch.action)
+        critic_loss = (q - target).pow(2).mean(dim=(1, 2)).sum()
+        self.critic_optimizer.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_optimizer.step()
+
+        action = training_action(actor(batch.obs, z), fb.stddev, fb.stddev_clip)
+        task_value = self.task_critic(batch.obs, z, action).amin(0).squeeze(-1)
+        objective = self.config.qf_coef * task_value
+        if self.config.eta != 0 or self.config.eta_mode == "adaptive":
+            skill_value = skill_values(self.agent.forward_map(batch.obs, action, z), z).amin(0)
+            eta = (task_value / skill_value).detach() if self.config.eta_mode == "adaptive" else self.config.eta
+            objective = objective + eta * skill_value
+            metrics["skill_value"] = skill_value.detach().mean()
+        actor_loss = -objective.mean()
+        self.actor_optimizer.zero_grad(set_to_none=True)
+        actor_loss.backward(inputs=list(actor.parameters()))
+        self.actor_optimizer.step()
+        soft_update_(self.task_critic_target, self.task_critic, fb.tau)
+        metrics.update(task_critic_loss=critic_loss.detach(), actor_loss=actor_loss.detach(),
+                       task_value=task_value.detach().mean())
+        return metrics
+
+    def training_state(self) -> dict:
+        return {"actor": self.agent.actor.state_dict(),
+                "finetuner": {k: v for k, v in self.state_dict().items() if not k.startswith("agent.")},
+                "optimizers": {"critic": self.critic_optimizer.state_dict(),
+                               "actor": self.actor_optimizer.state_dict()}}
+
+    def load_training_state(self, state: dict) -> None:
+        self.agent.actor.load_state_dict(state["actor"])
+        own = {k: v for k, v in self.state_dict().items() if not k.startswith("agent.")}
+        missing = set(own) - set(state["finetuner"])
+        if missing:
+            raise KeyError(f"fine-tuning checkpoint lacks {sorted(missing)}")
+        self.load_state_dict({**self.state_dict(), **state["finetuner"]})
+        self.critic_optimizer.load_state_dict(state["optimizers"]["critic"])
+        self.actor_optimizer.load_state_dict(state["optimizers"]["actor"])

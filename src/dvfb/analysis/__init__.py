@@ -1,0 +1,1 @@
+"""Tables, curves and analyses built from run directories."""

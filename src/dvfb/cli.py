@@ -1,0 +1,238 @@
+"""The ``dvfb`` command line: tasks, pretrain, zeroshot, finetune, demo.
+
+Every option of the typed run configuration is a flag (nested fields as ``--fb.hidden-dim``), shown
+with its default in ``--help``. Errors caused by input (unknown task, bad run directory, mismatched
+checkpoint, NaN loss) print one line and exit with status 2; nothing existing is overwritten unless
+``--overwrite`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from dvfb import __version__
+from dvfb.config import add_arguments, merge, overrides_from_args
+from dvfb.errors import ConfigError, DvfbError
+
+DEFAULT_PRESET = "small"
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    pass
+
+
+def _default_run_dir(config) -> Path:
+    return Path("runs") / f"{config.agent}_{config.domain}_{config.preset}_s{config.seed}"
+
+
+def _parse_goal(text: str) -> np.ndarray:
+    path = Path(text)
+    if path.suffix == ".npy":
+        if not path.exists():
+            raise ConfigError(f"goal file {path} does not exist")
+        return np.load(path)
+    try:
+        return np.array([float(x) for x in text.split(",")], dtype=np.float32)
+    except ValueError as exc:
+        raise ConfigError(f"--goal must be a .npy file or comma-separated numbers, got {text!r}") from exc
+
+
+# ---------------------------------------------------------------------------------------------
+# Sub-commands
+
+
+def cmd_tasks(args: argparse.Namespace) -> int:
+    from dvfb import envs
+
+    print(envs.format_task_table())
+    return 0
+
+
+def _pretrain_config(args: argparse.Namespace):
+    from dvfb.workflows.config import PretrainConfig, preset_config
+
+    base = preset_config(args.preset)
+    return merge(base, overrides_from_args(args, PretrainConfig))
+
+
+def cmd_pretrain(args: argparse.Namespace) -> int:
+    from dvfb.workflows.pretrain import pretrain
+
+    config = _pretrain_config(args)
+    run_dir = Path(args.run_dir) if args.run_dir else _default_run_dir(config)
+    run = pretrain(config, run_dir, resume=args.resume, overwrite=args.overwrite,
+                   progress=args.progress, command=sys.argv)
+    print(f"pre-training finished: {run.path}")
+    return 0
+
+
+def cmd_zeroshot(args: argparse.Namespace) -> int:
+    from dvfb import envs
+    from dvfb.workflows.common import open_pretrained_run
+    from dvfb.workflows.config import InferenceConfig
+    from dvfb.workflows.zeroshot import zeroshot
+
+    _run, config = open_pretrained_run(args.run)
+    tasks = envs.tasks_of_domain(config.domain) if args.task == ["all"] else args.task
+    inference = overrides_from_args(args, InferenceConfig, prefix="inference.")
+    goal = _parse_goal(args.goal) if args.goal else None
+    rows = []
+    for task in tasks:
+        result = zeroshot(args.run, task, snapshot=args.snapshot, inference=inference, seed=args.seed,
+                          z_source=args.z_source, reward_fn=args.reward_fn, goal=goal,
+                          overwrite=args.overwrite)
+        rows.append((task, result["mean_return"], result["std_return"], result["eval_episodes"]))
+    print(f"{'task':<36} {'return':>9} {'std':>8} {'episodes':>9}")
+    for task, mean, std, n in rows:
+        print(f"{task:<36} {mean:9.1f} {std:8.1f} {n:9d}")
+    return 0
+
+
+def cmd_finetune(args: argparse.Namespace) -> int:
+    from dvfb.agents.finetune import FinetuneConfig
+    from dvfb.workflows.config import InferenceConfig
+    from dvfb.workflows.finetune import finetune
+
+    run = finetune(args.run, args.task, snapshot=args.snapshot, seed=args.seed, name=args.name,
+                   inference=overrides_from_args(args, InferenceConfig, prefix="inference."),
+                   finetune=overrides_from_args(args, FinetuneConfig, prefix="finetune."),
+                   resume=args.resume, overwrite=args.overwrite, progress=args.progress)
+    import json
+
+    summary = json.loads((run.path / "finetune_summary.json").read_text())
+    print(f"fine-tuning finished: {run.path}")
+    print(f"zero-shot return {summary['zero_shot_return']:.1f} -> after {summary['frames']} frames "
+          f"{summary['final_return']:.1f}")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Short pre-training -> zero-shot on every task of the domain -> printed table."""
+    from dvfb import envs
+    from dvfb.workflows.config import preset_config
+    from dvfb.workflows.pretrain import pretrain
+    from dvfb.workflows.zeroshot import random_policy_return, zeroshot
+
+    config = preset_config("small", agent=args.agent, domain=args.domain, frames=args.frames, seed=args.seed,
+                           seed_frames=min(2000, args.frames // 2), checkpoint_every=args.frames, log_every=500)
+    run_dir = Path(args.run_dir)
+    print(f"[demo] pre-training {config.agent} on {config.domain} for {config.frames} frames "
+          f"(small preset) into {run_dir}")
+    pretrain(config, run_dir, overwrite=True, progress=args.progress, command=sys.argv)
+    inference = {"steps": args.inference_steps, "random_action_steps": args.inference_steps // 2,
+                 "samples": args.inference_steps, "eval_episodes": args.eval_episodes}
+    print(f"[demo] zero-shot: {args.inference_steps} reward-labelled steps per task, "
+          f"{args.eval_episodes} evaluation episode(s)")
+    header = f"{'task':<36} {config.agent + ' zero-shot':>16} {'random policy':>14}"
+    lines = [header, "-" * len(header)]
+    for task in envs.tasks_of_domain(config.domain):
+        result = zeroshot(run_dir, task, inference=inference, overwrite=True)
+        random_return = float(np.mean(random_policy_return(task, args.eval_episodes, seed=args.seed)))
+        lines.append(f"{task:<36} {result['mean_return']:16.1f} {random_return:14.1f}")
+    print("\n".join(lines))
+    print(f"[demo] results: {run_dir}/zeroshot/*.json")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from dvfb.agents.finetune import FinetuneConfig
+    from dvfb.workflows.config import PRESETS, InferenceConfig, PretrainConfig, preset_config
+
+    parser = argparse.ArgumentParser(prog="dvfb", description="Online unsupervised zero-shot RL: DVFB and FB.",
+                                     formatter_class=_Formatter)
+    parser.add_argument("--version", action="version", version=f"dvfb {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("tasks", help="print the task table", description="Print every task with its dimensions.")
+    p.set_defaults(func=cmd_tasks)
+
+    def progress_flag(p):
+        p.add_argument("--progress", dest="progress", action="store_true", default=None,
+                       help="always show the progress bar (default: only on a terminal)")
+        p.add_argument("--no-progress", dest="progress", action="store_false", help="never show it")
+
+    p = sub.add_parser(
+        "pretrain", help="reward-free pre-training", formatter_class=_Formatter,
+        description="Reward-free online pre-training (algorithm.md §7). Defaults shown are those of the "
+                    f"{DEFAULT_PRESET!r} preset; --preset paper gives the spec's values (hidden 1024, "
+                    "batch 1024, 2M frames), --preset code the authors' constants.")
+    p.add_argument("--preset", default=DEFAULT_PRESET, choices=PRESETS, help="base configuration (default: %(default)s)")
+    p.add_argument("--run-dir", default=None, help="run directory (default: runs/<agent>_<domain>_<preset>_s<seed>)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --run-dir from its latest checkpoint")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
+    progress_flag(p)
+    add_arguments(p, PretrainConfig, defaults=preset_config(DEFAULT_PRESET), skip=("preset",))
+    p.set_defaults(func=cmd_pretrain)
+
+    p = sub.add_parser("zeroshot", help="infer z for a task and evaluate", formatter_class=_Formatter,
+                       description="Zero-shot: infer z_r from reward-labelled steps (or a reward function "
+                                   "or a goal) and evaluate pi(s, z_r) with mean actions (algorithm.md §8). "
+                                   "Inference defaults come from the run's config.")
+    p.add_argument("run", help="pre-training run directory")
+    p.add_argument("--task", nargs="+", required=True, help="task name(s) of the run's domain, or 'all'")
+    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
+    p.add_argument("--seed", type=int, default=None, help="task seed (default: the run's seed)")
+    p.add_argument("--z-source", default="rewards", choices=("rewards", "reward_fn", "goal"),
+                   help="how z is obtained (default: %(default)s)")
+    p.add_argument("--reward-fn", default=None, help="module:function or file.py:function mapping next_obs (N, O) to rewards")
+    p.add_argument("--goal", default=None, help="goal observation: a .npy file or comma-separated numbers")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing result file")
+    add_arguments(p, InferenceConfig, prefix="inference.")
+    p.set_defaults(func=cmd_zeroshot)
+
+    p = sub.add_parser("finetune", help="dual-value fine-tuning on a task", formatter_class=_Formatter,
+                       description="Fine-tuning with a fresh task critic, reward mapping and the skill value "
+                                   "(algorithm.md §9). Defaults come from the run's config.")
+    p.add_argument("run", help="pre-training run directory")
+    p.add_argument("--task", required=True, help="task name of the run's domain")
+    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
+    p.add_argument("--seed", type=int, default=None, help="seed (default: the run's seed)")
+    p.add_argument("--name", default=None, help="name of the fine-tuning run under RUN/finetune/ (default: the task)")
+    p.add_argument("--resume", action="store_true", help="continue from the latest fine-tuning checkpoint")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing fine-tuning run")
+    progress_flag(p)
+    add_arguments(p, InferenceConfig, prefix="inference.")
+    add_arguments(p, FinetuneConfig, prefix="finetune.")
+    p.set_defaults(func=cmd_finetune)
+
+    p = sub.add_parser("demo", help="short pre-train -> zero-shot on every task -> table",
+                       description="The README's end-to-end demo on the small CPU preset.")
+    p.add_argument("--agent", default="dvfb", choices=("dvfb", "fb"), help="(default: %(default)s)")
+    p.add_argument("--domain", default="walker", help="(default: %(default)s)")
+    p.add_argument("--frames", type=int, default=6000, help="pre-training frames (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="(default: %(default)s)")
+    p.add_argument("--inference-steps", type=int, default=2000, help="reward-labelled steps per task (default: %(default)s)")
+    p.add_argument("--eval-episodes", type=int, default=1, help="evaluation episodes per task (default: %(default)s)")
+    p.add_argument("--run-dir", default="runs/demo", help="(default: %(default)s; replaced on every demo)")
+    progress_flag(p)
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except DvfbError as exc:
+        print(f"dvfb {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"dvfb {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,369 @@
+"""Shared network building blocks (algorithm.md §3-§5).
+
+Every method in :mod:`dvfb.agents` builds its networks from the pieces here, so that an MLP, a twin
+head or an EMA target is written once:
+
+* :func:`mlp` and :func:`layernorm_tanh_layer` -- the "LNT" first layer (Linear, LayerNorm, Tanh)
+  followed by ReLU layers (§3.1);
+* :class:`TwinHead` -- K independent heads on a shared input, evaluated as one wide matrix product
+  plus one batched matrix product instead of K separate MLPs (§4.2, §4.4, D13);
+* :class:`ForwardMap`, :class:`BackwardMap`, :class:`Actor`, :class:`TwinCritic` (§4.1-§4.4);
+* :class:`RNDNetworks` and :class:`ContrastiveEncoders` (§4.5, §4.6);
+* the policy distribution helpers (§3.3), sphere projection and the z prior (§5.1);
+* :func:`orthogonal_init_`, :func:`soft_update_` (EMA, §3.5) and :class:`RunningMeanStd` (§3.4).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from typing import Iterable
+
+import torch
+from torch import nn
+from torch.nn import functional as F_nn
+
+# Actions are clamped strictly inside the box so that tanh-space quantities stay finite (§3.3).
+ACTION_EPS = 1e-6
+# Numerical floor of the norm in the sphere projection (algorithm.md conventions).
+NORM_FLOOR = 1e-12
+
+
+# ---------------------------------------------------------------------------------------------
+# Initialisation and targets
+
+
+def orthogonal_init_(module: nn.Module) -> nn.Module:
+    """Orthogonal weights with gain 1 and zero biases for every layer (§3.2).
+
+    LayerNorm keeps weight 1 / bias 0. :class:`TwinHead` members are initialised independently,
+    as K separate Linear layers would be.
+    """
+    # A TwinHead's fused first layer holds K stacked member blocks: initialising it as one matrix
+    # would make only the stack orthogonal, not each member, so it is left to reset_parameters().
+    twin_first = {id(sub.first) for sub in module.modules() if isinstance(sub, TwinHead)}
+    for sub in module.modules():
+        if isinstance(sub, nn.Linear) and id(sub) not in twin_first:
+            nn.init.orthogonal_(sub.weight, gain=1.0)
+            if sub.bias is not None:
+                nn.init.zeros_(sub.bias)
+        elif isinstance(sub, TwinHead):
+            sub.reset_parameters()
+    return module
+
+
+def make_target(online: nn.Module) -> nn.Module:
+    """An exact, gradient-free copy of ``online`` to be tracked by :func:`soft_update_`."""
+    target = copy.deepcopy(online)
+    for p in target.parameters():
+        p.requires_grad_(False)
+    return target
+
+
+@torch.no_grad()
+def soft_update_(target: nn.Module, online: nn.Module, tau: float) -> None:
+    """EMA ``theta_target <- tau * theta + (1 - tau) * theta_target`` (§3.5), one fused call."""
+    torch._foreach_lerp_(list(target.parameters()), list(online.parameters()), tau)
+
+
+def freeze_(module: nn.Module) -> nn.Module:
+    for p in module.parameters():
+        p.requires_grad_(False)
+    return module
+
+
+# ---------------------------------------------------------------------------------------------
+# MLPs
+
+
+def layernorm_tanh_layer(in_dim: int, out_dim: int) -> nn.Sequential:
+    """The "LNT" block that starts every input stream: Linear -> LayerNorm -> Tanh (§3.1)."""
+    return nn.Sequential(nn.Linear(in_dim, out_dim), nn.LayerNorm(out_dim), nn.Tanh())
+
+
+def mlp(*dims: int, first_layer_lnt: bool = False, output_activation: nn.Module | None = None
+        ) -> nn.Sequential:
+    """An MLP ``dims[0] -> ... -> dims[-1]`` with ReLU between layers.
+
+    With ``first_layer_lnt`` the first layer is an LNT block (its Tanh replaces the ReLU).
+    """
+    if len(dims) < 2:
+        raise ValueError("mlp needs at least an input and an output size")
+    layers: list[nn.Module] = []
+    for i, (d_in, d_out) in enumerate(zip(dims[:-1], dims[1:])):
+        last = i == len(dims) - 2
+        if i == 0 and first_layer_lnt:
+            layers.extend(layernorm_tanh_layer(d_in, d_out))
+            continue
+        layers.append(nn.Linear(d_in, d_out))
+        if not last:
+            layers.append(nn.ReLU())
+    if output_activation is not None:
+        layers.append(output_activation)
+    return nn.Sequential(*layers)
+
+
+class TwinHead(nn.Module):
+    """K independent two-layer heads ``in -> hidden -> ReLU -> out`` on a shared input.
+
+    The first layers of all heads are one ``(in, K*hidden)`` matrix product; the second layers are
+    one batched product. Output shape: ``(K, N, out)``. Mathematically identical to K separate
+    ``Linear -> ReLU -> Linear`` heads (tested in tests/test_nets.py).
+    """
+
+    def __init__(self, in_dim: int, hidden_dim: int, out_dim: int, num_heads: int = 2):
+        super().__init__()
+        self.in_dim, self.hidden_dim, self.out_dim, self.num_heads = in_dim, hidden_dim, out_dim, num_heads
+        self.first = nn.Linear(in_dim, num_heads * hidden_dim)
+        self.second_weight = nn.Parameter(torch.empty(num_heads, hidden_dim, out_dim))
+        self.second_bias = nn.Parameter(torch.empty(num_heads, 1, out_dim))
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        with torch.no_grad():
+            for k in range(self.num_heads):
+                rows = slice(k * self.hidden_dim, (k + 1) * self.hidden_dim)
+                block = torch.empty(self.hidden_dim, self.in_dim)
+                nn.init.orthogonal_(block)
+                self.first.weight[rows].copy_(block)
+                member = torch.empty(self.out_dim, self.hidden_dim)
+                nn.init.orthogonal_(member)
+                self.second_weight[k].copy_(member.t())
+            self.first.bias.zero_()
+            self.second_bias.zero_()
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        n = h.shape[0]
+        hidden = F_nn.relu(self.first(h))  # (N, K*H)
+        hidden = hidden.view(n, self.num_heads, self.hidden_dim).transpose(0, 1)  # (K, N, H)
+        return torch.baddbmm(self.second_bias, hidden, self.second_weight)
+
+
+# ---------------------------------------------------------------------------------------------
+# Geometry of z
+
+
+def project_to_sphere(v: torch.Tensor) -> torch.Tensor:
+    """``proj(v) = sqrt(d) * v / ||v||`` row-wise, with the norm floored at 1e-12."""
+    d = v.shape[-1]
+    norm = v.norm(dim=-1, keepdim=True).clamp_min(NORM_FLOOR)
+    return math.sqrt(d) * v / norm
+
+
+def sample_z_prior(n: int, z_dim: int, device: torch.device | str = "cpu",
+                   generator: torch.Generator | None = None) -> torch.Tensor:
+    """``n`` draws uniform on the sphere of radius sqrt(z_dim) (§5.1, norm_z = true)."""
+    g = torch.randn(n, z_dim, device=device, generator=generator)
+    return project_to_sphere(g)
+
+
+# ---------------------------------------------------------------------------------------------
+# Policy distribution (§3.3)
+
+
+def rollout_action(mean: torch.Tensor, std: float) -> torch.Tensor:
+    """Data-collection sample: ``clamp(mu + sigma*eps)`` with unclipped noise."""
+    noise = torch.randn_like(mean) * std
+    return (mean + noise).clamp(-1 + ACTION_EPS, 1 - ACTION_EPS)
+
+
+def training_action(mean: torch.Tensor, std: float, noise_clip: float) -> torch.Tensor:
+    """Reparameterised training sample with noise clipped at ``noise_clip``.
+
+    The outer clamp is straight-through: the value is clamped, the gradient w.r.t. ``mean`` is 1.
+    """
+    noise = (torch.randn_like(mean) * std).clamp(-noise_clip, noise_clip)
+    raw = mean + noise
+    clamped = raw.clamp(-1 + ACTION_EPS, 1 - ACTION_EPS)
+    return raw + (clamped - raw).detach()
+
+
+# ---------------------------------------------------------------------------------------------
+# Networks of the FB family (§4)
+
+
+class TwoStreamEncoder(nn.Module):
+    """Two input streams, ``LNT(in_k -> H) -> Linear(H -> E) -> ReLU`` each, concatenated (§4.1)."""
+
+    def __init__(self, first_dim: int, second_dim: int, hidden_dim: int, feature_dim: int):
+        super().__init__()
+        self.first = nn.Sequential(*layernorm_tanh_layer(first_dim, hidden_dim),
+                                   nn.Linear(hidden_dim, feature_dim), nn.ReLU())
+        self.second = nn.Sequential(*layernorm_tanh_layer(second_dim, hidden_dim),
+                                    nn.Linear(hidden_dim, feature_dim), nn.ReLU())
+        self.out_dim = 2 * feature_dim
+
+    def forward(self, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+        return torch.cat([self.first(first), self.second(second)], dim=-1)
+
+
+class Actor(nn.Module):
+    """z-conditioned deterministic mean ``mu(s, z)`` in (-1, 1) (§4.1).
+
+    ``arch = "two_stream"``: streams ``[s]`` and ``[s, z]``, head ``2E -> H -> U``.
+    ``arch = "mlp"``: Table 4's plain MLP ``[s, z] -> LNT(H) -> H -> U``.
+    """
+
+    def __init__(self, obs_dim: int, z_dim: int, action_dim: int, hidden_dim: int,
+                 feature_dim: int, arch: str = "two_stream"):
+        super().__init__()
+        self.arch = arch
+        if arch == "two_stream":
+            self.encoder = TwoStreamEncoder(obs_dim, obs_dim + z_dim, hidden_dim, feature_dim)
+            self.head = mlp(self.encoder.out_dim, hidden_dim, action_dim)
+        elif arch == "mlp":
+            self.encoder = None
+            self.head = mlp(obs_dim + z_dim, hidden_dim, hidden_dim, action_dim, first_layer_lnt=True)
+        else:
+            raise ValueError(f"unknown actor_arch {arch!r}; expected 'two_stream' or 'mlp'")
+        orthogonal_init_(self)
+
+    def forward(self, obs: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        obs_z = torch.cat([obs, z], dim=-1)
+        h = self.encoder(obs, obs_z) if self.encoder is not None else obs_z
+        return torch.tanh(self.head(h))
+
+
+class ForwardMap(nn.Module):
+    """``F_k(s, a, z)``, k = 1..num_heads, on shared ``[s, a]`` and ``[s, z]`` streams (§4.2).
+
+    Returns ``(K, N, d)``. The skill value is ``Q_M,k = F_k . z`` (:func:`skill_values`).
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, z_dim: int, hidden_dim: int,
+                 feature_dim: int, num_heads: int = 2):
+        super().__init__()
+        self.encoder = TwoStreamEncoder(obs_dim + action_dim, obs_dim + z_dim, hidden_dim, feature_dim)
+        self.heads = TwinHead(self.encoder.out_dim, hidden_dim, z_dim, num_heads)
+        orthogonal_init_(self)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        h = self.encoder(torch.cat([obs, action], dim=-1), torch.cat([obs, z], dim=-1))
+        return self.heads(h)
+
+
+def skill_values(forward_out: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """``Q_M,k = F_k . z`` for every head: ``(K, N, d), (N, d) -> (K, N)``."""
+    return (forward_out * z.unsqueeze(0)).sum(-1)
+
+
+class BackwardMap(nn.Module):
+    """``B(x) = proj(MLP(x))`` with ``||B(x)|| = sqrt(d)`` (§4.3).
+
+    ``input_dim`` is O in ``state`` mode and 2*O in ``transition`` / ``code_exact`` modes.
+    """
+
+    def __init__(self, input_dim: int, hidden_dim: int, z_dim: int):
+        super().__init__()
+        self.net = mlp(input_dim, hidden_dim, hidden_dim, z_dim, first_layer_lnt=True)
+        orthogonal_init_(self)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return project_to_sphere(self.net(x))
+
+
+class TwinCritic(nn.Module):
+    """``Q_k(s, a, z)``: a shared ``LNT([s, z, a] -> H)`` trunk and K heads ``H -> H -> 1`` (§4.4).
+
+    Used for the exploration critic Q_P (pre-training) and the task critic Q_F (fine-tuning).
+    Returns ``(K, N, 1)``.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, z_dim: int, hidden_dim: int, num_heads: int = 2):
+        super().__init__()
+        self.trunk = layernorm_tanh_layer(obs_dim + z_dim + action_dim, hidden_dim)
+        self.heads = TwinHead(hidden_dim, hidden_dim, 1, num_heads)
+        orthogonal_init_(self)
+
+    def forward(self, obs: torch.Tensor, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.heads(self.trunk(torch.cat([obs, z, action], dim=-1)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Intrinsic-reward networks
+
+
+class RNDNetworks(nn.Module):
+    """RND predictor and frozen random target on batch-normalised, clipped input (§4.5).
+
+    The normalisation is a per-dimension batch norm without affine parameters, always using the
+    current batch statistics (biased variance, eps 1e-5), then a clamp to ``[-clip, clip]``.
+    """
+
+    def __init__(self, obs_dim: int, hidden_dim: int, rep_dim: int = 512, obs_clip: float = 5.0):
+        super().__init__()
+        self.obs_clip = obs_clip
+        self.predictor = mlp(obs_dim, hidden_dim, hidden_dim, rep_dim)
+        self.target = freeze_(mlp(obs_dim, hidden_dim, hidden_dim, rep_dim))
+        orthogonal_init_(self)
+
+    def normalise(self, obs: torch.Tensor) -> torch.Tensor:
+        normed = F_nn.batch_norm(obs, None, None, training=True, eps=1e-5)
+        return normed.clamp(-self.obs_clip, self.obs_clip)
+
+    @staticmethod
+    def error(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Per-sample error ``mean_k (target_k - prediction_k)^2`` -> ``(N,)``."""
+        return (target - prediction).pow(2).mean(-1)
+
+
+class ContrastiveEncoders(nn.Module):
+    """The CIC-style encoders behind the CE reward (§4.6).
+
+    * ``state_net`` g: ``O -> H -> H -> c``;
+    * ``transition_net`` (pred): ``key(s, s') = pred([g(s), g(s')])``, ``2c -> H -> H -> c``;
+    * ``skill_net`` (query): ``c -> H -> H -> c``.
+    """
+
+    def __init__(self, obs_dim: int, skill_dim: int, hidden_dim: int):
+        super().__init__()
+        self.state_net = mlp(obs_dim, hidden_dim, hidden_dim, skill_dim)
+        self.transition_net = mlp(2 * skill_dim, hidden_dim, hidden_dim, skill_dim)
+        self.skill_net = mlp(skill_dim, hidden_dim, hidden_dim, skill_dim)
+        orthogonal_init_(self)
+
+    def key(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        # One pass of g over both columns instead of two.
+        both = self.state_net(torch.cat([obs, next_obs], dim=0))
+        g_obs, g_next = both.chunk(2, dim=0)
+        return self.transition_net(torch.cat([g_obs, g_next], dim=-1))
+
+    def query(self, skill: torch.Tensor) -> torch.Tensor:
+        return self.skill_net(skill)
+
+
+# ---------------------------------------------------------------------------------------------
+# Running statistics (§3.4)
+
+
+class RunningMeanStd(nn.Module):
+    """Scalar running mean and variance with the (0, 1, 1e-4) prior of §3.4.
+
+    State lives in buffers on the module's device; :meth:`update` never syncs with the host.
+    """
+
+    def __init__(self, epsilon_count: float = 1e-4):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("var", torch.ones((), dtype=torch.float64))
+        self.register_buffer("count", torch.full((), epsilon_count, dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Fold in a batch (Bessel-corrected batch variance) and return the new ``(mean, var)``."""
+        x = x.detach().reshape(-1).double()
+        b = x.numel()
+        batch_mean = x.mean()
+        batch_var = x.var(unbiased=True) if b > 1 else torch.zeros_like(batch_mean)
+        n = self.count
+        total = n + b
+        delta = batch_mean - self.mean
+        self.mean.add_(delta * b / total)
+        self.var.copy_((self.var * n + batch_var * b + delta.pow(2) * n * b / total) / total)
+        self.count.add_(b)
+        return self.mean, self.var
+
+
+def parameters_of(*modules: nn.Module) -> Iterable[nn.Parameter]:
+    for m in modules:
+        yield from m.parameters()

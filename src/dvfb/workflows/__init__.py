@@ -1,0 +1,1 @@
+"""Pre-training, zero-shot, fine-tuning and evaluation loops."""

@@ -1,0 +1,157 @@
+"""Zero-shot evaluation of a pre-trained run on a task (algorithm.md §8).
+
+Three ways to obtain the task vector:
+
+* ``rewards`` (the paper's protocol): collect ``inference.steps`` reward-labelled steps in the
+  task, draw ``inference.samples`` of them, keep the top reward quantile, ``z_r = proj(mean r B)``;
+* ``reward_fn``: a Python function ``f(next_obs: np.ndarray (N, O)) -> rewards (N,)`` applied to the
+  states of the run's own pre-training replay buffer (no task interaction);
+* ``goal``: ``z = proj(B(goal))`` for a goal observation.
+
+The result (returns, z, inference details) is written to ``RUN/zeroshot/<task>.json``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from dvfb import envs
+from dvfb.agents import FBAgent
+from dvfb.config import merge, to_dict
+from dvfb.errors import CheckpointError, ConfigError, RunDirError
+from dvfb.replay import ReplayBuffer
+from dvfb.runs import RunDir, load_checkpoint, write_json_atomic
+from dvfb.workflows.common import check_task_in_domain, load_pretrained_agent, open_pretrained_run, seed_everything
+from dvfb.workflows.config import InferenceConfig, PretrainConfig
+from dvfb.workflows.evaluate import collect_inference_data, evaluate_policy
+
+Z_SOURCES = ("rewards", "reward_fn", "goal")
+
+
+def infer_task_vector(agent: FBAgent, buffer, config: InferenceConfig) -> tuple[torch.Tensor, dict]:
+    """Draw the inference samples from ``buffer`` and infer z_r (§8.2)."""
+    data = buffer.transitions()
+    n = data.obs.shape[0]
+    if n == 0:
+        raise ConfigError("no reward-labelled transitions to infer z from (inference.steps is 0?)")
+    if config.with_replacement:
+        index = torch.randint(0, n, (config.samples,), device=data.obs.device)
+    else:
+        index = torch.randperm(n, device=data.obs.device)[: config.samples]
+    return agent.infer_z(data.obs[index], data.next_obs[index], data.reward[index], config.reward_quantile)
+
+
+def load_reward_fn(spec: str) -> Callable[[np.ndarray], np.ndarray]:
+    """Import ``module:function`` (or ``path/to/file.py:function``)."""
+    if ":" not in spec:
+        raise ConfigError(f"reward function {spec!r} must look like 'module:function' or 'file.py:function'")
+    module_name, func_name = spec.rsplit(":", 1)
+    try:
+        if module_name.endswith(".py"):
+            loader = importlib.util.spec_from_file_location("dvfb_user_reward", module_name)
+            if loader is None:
+                raise ImportError(module_name)
+            module = importlib.util.module_from_spec(loader)
+            loader.loader.exec_module(module)
+        else:
+            module = importlib.import_module(module_name)
+        return getattr(module, func_name)
+    except (ImportError, AttributeError, FileNotFoundError) as exc:
+        raise ConfigError(f"cannot load reward function {spec!r}: {exc}") from exc
+
+
+def infer_from_reward_fn(agent: FBAgent, run: RunDir, config: PretrainConfig, reward_fn: Callable,
+                         inference: InferenceConfig) -> tuple[torch.Tensor, dict]:
+    """Apply ``reward_fn`` to the pre-training replay states and infer z from those rewards."""
+    try:
+        state = load_checkpoint(run, None, map_location="cpu")
+    except CheckpointError as exc:
+        raise CheckpointError(f"reward_fn inference needs the run's replay buffer (a resume checkpoint): {exc}") from exc
+    buffer = ReplayBuffer(config.replay_capacity, agent.obs_dim, agent.action_dim, config.fb.z_dim,
+                          envs.TASKS[envs.pretrain_task(config.domain)].episode_length, device=agent.device)
+    buffer.load_state_dict(state["replay"])
+    data = buffer.transitions()
+    rewards = np.asarray(reward_fn(data.next_obs.cpu().numpy()), dtype=np.float32).reshape(-1)
+    if rewards.shape[0] != data.next_obs.shape[0]:
+        raise ConfigError(f"reward function returned {rewards.shape[0]} rewards for {data.next_obs.shape[0]} states")
+    reward_t = torch.as_tensor(rewards, device=agent.device)
+    index = torch.randperm(reward_t.shape[0], device=agent.device)[: inference.samples]
+    return agent.infer_z(data.obs[index], data.next_obs[index], reward_t[index], inference.reward_quantile)
+
+
+def result_path(run: RunDir, task: str, snapshot: int, final_snapshot: int) -> Path:
+    name = task if snapshot == final_snapshot else f"{task}@{snapshot}"
+    return run.path / "zeroshot" / f"{name}.json"
+
+
+def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, inference: dict | None = None,
+             seed: int | None = None, z_source: str = "rewards", reward_fn: str | Callable | None = None,
+             goal: np.ndarray | None = None, overwrite: bool = False, device: str | None = None) -> dict:
+    """Infer z for ``task`` from a pre-trained run and evaluate ``pi(., z)``; returns the result."""
+    if z_source not in Z_SOURCES:
+        raise ConfigError(f"z_source must be one of {Z_SOURCES}, got {z_source!r}")
+    run, config = open_pretrained_run(run_path)
+    check_task_in_domain(task, config.domain)
+    cfg = merge(config.inference, inference or {})
+    agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
+    final = max(config.frames, snapshot)
+    out = result_path(run, task, snapshot, final)
+    if out.exists() and not overwrite:
+        raise RunDirError(f"{out} exists; pass --overwrite to replace it")
+    seed = config.seed if seed is None else seed
+    rng = seed_everything(seed)
+    started = time.time()
+    max_len = envs.TASKS[task].episode_length
+    if z_source == "rewards":
+        env = envs.make(task, seed=seed)
+        buffer = collect_inference_data(agent, env, cfg.steps, cfg.random_action_steps, rng, max_len)
+        z, info = infer_task_vector(agent, buffer, cfg)
+    elif z_source == "reward_fn":
+        if reward_fn is None:
+            raise ConfigError("z_source 'reward_fn' needs a reward function")
+        fn = load_reward_fn(reward_fn) if isinstance(reward_fn, str) else reward_fn
+        z, info = infer_from_reward_fn(agent, run, config, fn, cfg)
+    else:
+        if goal is None:
+            raise ConfigError("z_source 'goal' needs a goal observation")
+        z = agent.infer_z_from_goal(torch.as_tensor(goal, dtype=torch.float32))
+        info = {"goal": np.asarray(goal, dtype=float).tolist()}
+    eval_env = envs.make(task, seed=seed)
+    returns = evaluate_policy(agent, eval_env, z, cfg.eval_episodes)
+    result = {
+        "task": task, "domain": config.domain, "agent": config.agent, "preset": config.preset,
+        "pretrain_seed": config.seed, "seed": seed, "snapshot_frames": snapshot, "z_source": z_source,
+        "inference": to_dict(cfg), "inference_info": info, "z": z.cpu().tolist(),
+        "returns": returns, "mean_return": float(np.mean(returns)) if returns else float("nan"),
+        "std_return": float(np.std(returns)) if returns else float("nan"),
+        "eval_episodes": len(returns), "wall_clock_s": time.time() - started,
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out, result)
+    return result
+
+
+def random_policy_return(task: str, episodes: int, seed: int = 0) -> list[float]:
+    """Returns of a uniform-random policy: the floor every zero-shot table should show."""
+    env = envs.make(task, seed=seed)
+    rng = np.random.default_rng(seed)
+    returns = []
+    for _ in range(episodes):
+        env.reset()
+        total, done = 0.0, False
+        while not done:
+            _, reward, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+            total += reward
+            done = terminated or truncated
+        returns.append(total)
+    return returns
+
+
+__all__ = ["PretrainConfig", "Z_SOURCES", "infer_task_vector", "random_policy_return", "zeroshot"]

@@ -1,0 +1,202 @@
+"""End-to-end workflows on real physics with tiny budgets: pretrain -> zeroshot -> finetune,
+exact resume, and the bad-input cases (clear message, exit status 2, nothing overwritten)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from dvfb.cli import main
+from dvfb.runs import latest_checkpoint, load_checkpoint, load_snapshot
+
+# A network small enough that an update costs a few milliseconds.
+TINY = ["--fb.z-dim", "16", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
+        "--fb.batch-size", "64", "--exploration.contrastive-hidden-dim", "32",
+        "--exploration.rnd-rep-dim", "16", "--exploration.ce-k", "4", "--log-every", "250"]
+MAZE = ["--domain", "point_mass_maze", "--seed-frames", "1000", "--update-every", "4", "--checkpoint-every", "1000"]
+FAST_INFERENCE = ["--inference.steps", "300", "--inference.random-action-steps", "100",
+                  "--inference.samples", "300", "--inference.eval-episodes", "1"]
+
+
+def pretrain_args(run_dir: Path, frames: int, agent: str = "dvfb", extra: list[str] = ()) -> list[str]:
+    return ["pretrain", "--agent", agent, *MAZE, "--frames", str(frames), "--run-dir", str(run_dir),
+            "--no-progress", *TINY, *extra]
+
+
+@pytest.fixture(scope="module")
+def pretrained(tmp_path_factory) -> Path:
+    """A DVFB run on the maze: 2000 frames, two episodes, one resume checkpoint per episode."""
+    run_dir = tmp_path_factory.mktemp("runs") / "dvfb_maze"
+    assert main(pretrain_args(run_dir, 2000)) == 0
+    return run_dir
+
+
+def test_pretrain_writes_run_directory(pretrained: Path):
+    config = json.loads((pretrained / "config.json").read_text())
+    assert config["agent"] == "dvfb" and config["domain"] == "point_mass_maze"
+    assert config["fb"]["hidden_dim"] == 32 and config["preset"] == "small"
+    assert (pretrained / "snapshots" / "snapshot_2000.pt").is_file()
+    assert latest_checkpoint(pretrained).name == "resume_2000.pt"
+    lines = (pretrained / "metrics" / "train.jsonl").read_text().splitlines()
+    # Updates start at 1000 frames; metrics are read back every 250 frames.
+    assert [json.loads(line)["step"] for line in lines] == list(range(1250, 2001, 250))
+    assert {"fb_loss", "rnd_loss", "nce_loss", "exploration_critic_loss", "actor_loss"} <= set(json.loads(lines[-1]))
+    assert any(p.name.startswith("events.out.tfevents") for p in (pretrained / "tb").iterdir())
+    summary = json.loads((pretrained / "pretrain_summary.json").read_text())
+    assert summary["frames"] == 2000 and summary["episodes"] == 2
+
+
+def test_zeroshot_then_finetune(pretrained: Path, capsys):
+    assert main(["zeroshot", str(pretrained), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE]) == 0
+    result = json.loads((pretrained / "zeroshot" / "point_mass_maze_reach_top_left.json").read_text())
+    assert result["eval_episodes"] == 1 and len(result["returns"]) == 1
+    assert 0.0 <= result["mean_return"] <= 1000.0
+    z = torch.tensor(result["z"])
+    assert torch.isclose(z.norm(), torch.tensor(16.0).sqrt(), atol=1e-4)  # z_r on the sphere
+    assert result["inference_info"]["num_samples"] == 300
+    assert "point_mass_maze_reach_top_left" in capsys.readouterr().out
+
+    args = ["finetune", str(pretrained), "--task", "point_mass_maze_reach_top_right", *FAST_INFERENCE,
+            "--finetune.frames", "1200", "--finetune.seed-frames", "400", "--finetune.eval-every", "600",
+            "--finetune.eval-episodes", "1", "--finetune.checkpoint-every", "1000", "--no-progress"]
+    assert main(args) == 0
+    curve = json.loads((pretrained / "finetune" / "point_mass_maze_reach_top_right" / "curve.json").read_text())
+    assert [p["frames"] for p in curve["curve"]] == [0, 600, 1200]
+    # F and B stayed frozen: the fine-tuning checkpoint holds only the actor and the task critic.
+    state = load_checkpoint(pretrained / "finetune" / "point_mass_maze_reach_top_right")
+    assert any(k.startswith("task_critic.") for k in state["finetuner"]["finetuner"])
+    assert not any(k.startswith("agent.") for k in state["finetuner"]["finetuner"])
+
+
+def test_reward_fn_and_goal_inference(pretrained: Path, tmp_path: Path):
+    reward_file = tmp_path / "reward.py"
+    reward_file.write_text("import numpy as np\n\ndef right_side(next_obs):\n    return (next_obs[:, 0] > 0).astype(np.float32)\n")
+    assert main(["zeroshot", str(pretrained), "--task", "point_mass_maze_reach_top_right", "--z-source", "reward_fn",
+                 "--reward-fn", f"{reward_file}:right_side", "--inference.eval-episodes", "1"]) == 0
+    result = json.loads((pretrained / "zeroshot" / "point_mass_maze_reach_top_right.json").read_text())
+    assert result["z_source"] == "reward_fn" and result["inference_info"]["num_samples"] > 0
+    assert main(["zeroshot", str(pretrained), "--task", "point_mass_maze_reach_bottom_left", "--z-source", "goal",
+                 "--goal=-0.15,-0.15,0,0", "--inference.eval-episodes", "1"]) == 0
+    result = json.loads((pretrained / "zeroshot" / "point_mass_maze_reach_bottom_left.json").read_text())
+    assert result["z_source"] == "goal" and len(result["z"]) == 16
+
+
+def _snapshot_tensors(run_dir: Path, frames: int) -> dict[str, torch.Tensor]:
+    state = load_snapshot(run_dir, f"snapshot_{frames}")
+    return {f"{m}.{k}": v for m, sd in state["modules"].items() for k, v in sd.items()}
+
+
+def test_resume_continues_as_if_uninterrupted(tmp_path: Path):
+    full, split = tmp_path / "full", tmp_path / "split"
+    assert main(pretrain_args(full, 2000, agent="fb")) == 0
+    assert main(pretrain_args(split, 1000, agent="fb")) == 0
+    assert main(pretrain_args(split, 2000, agent="fb", extra=["--resume"])) == 0
+    a, b = _snapshot_tensors(full, 2000), _snapshot_tensors(split, 2000)
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    full_metrics = (full / "metrics" / "train.jsonl").read_text().splitlines()
+    split_metrics = (split / "metrics" / "train.jsonl").read_text().splitlines()
+    strip = lambda lines: [{k: v for k, v in json.loads(x).items() if k != "fps"} for x in lines]  # noqa: E731
+    assert strip(full_metrics) == strip(split_metrics)
+
+
+def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path: Path, capsys):
+    run_dir = tmp_path / "nan"
+    # A NaN ridge poisons the implicit reward of the first update, after the first checkpoint.
+    code = main(pretrain_args(run_dir, 3000, agent="fb", extra=["--seed-frames", "1000", "--fb.cov-ridge", "nan"]))
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "non-finite" in err and "fb_q_loss" in err and "step 1000" in err
+    assert latest_checkpoint(run_dir).name == "resume_1000.pt"
+    assert load_checkpoint(run_dir)["step"] == 1000
+    assert not (run_dir / "snapshots" / "snapshot_3000.pt").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad input: a message naming the problem, exit 2, nothing overwritten
+
+
+def test_existing_run_is_not_overwritten(pretrained: Path, capsys):
+    before = (pretrained / "config.json").read_bytes()
+    assert main(pretrain_args(pretrained, 1000)) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert (pretrained / "config.json").read_bytes() == before
+    assert (pretrained / "snapshots" / "snapshot_2000.pt").is_file()
+
+
+def test_zeroshot_missing_and_corrupt_run(tmp_path: Path, capsys):
+    assert main(["zeroshot", str(tmp_path / "nope"), "--task", "walker_walk"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    corrupt = tmp_path / "corrupt"
+    corrupt.mkdir()
+    (corrupt / "config.json").write_text("{not json")
+    assert main(["finetune", str(corrupt), "--task", "walker_walk"]) == 2
+    assert "corrupt" in capsys.readouterr().err
+    assert (corrupt / "config.json").read_text() == "{not json"
+
+
+def test_corrupt_snapshot(pretrained: Path, tmp_path: Path, capsys):
+    copy = tmp_path / "copy"
+    shutil.copytree(pretrained, copy)
+    (copy / "snapshots" / "snapshot_2000.pt").write_bytes(b"truncated")
+    assert main(["zeroshot", str(copy), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE]) == 2
+    assert "snapshot_2000.pt" in capsys.readouterr().err
+
+
+def test_task_from_another_domain(pretrained: Path, capsys):
+    assert main(["zeroshot", str(pretrained), "--task", "walker_walk"]) == 2
+    err = capsys.readouterr().err
+    assert "walker_walk" in err and "point_mass_maze" in err and "point_mass_maze_reach_top_left" in err
+    assert main(["zeroshot", str(pretrained), "--task", "walker_moonwalk"]) == 2
+    assert "walker_walk" in capsys.readouterr().err  # lists the valid names
+
+
+def test_snapshot_from_another_agent_or_config(pretrained: Path, tmp_path: Path, capsys):
+    fb_run = tmp_path / "fb"
+    assert main(pretrain_args(fb_run, 1000, agent="fb")) == 0
+    mixed = tmp_path / "mixed"
+    shutil.copytree(pretrained, mixed)
+    shutil.copy(fb_run / "snapshots" / "snapshot_1000.pt", mixed / "snapshots" / "snapshot_2000.pt")
+    assert main(["zeroshot", str(mixed), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE]) == 2
+    assert "agent 'fb'" in capsys.readouterr().err
+    config = json.loads((mixed / "config.json").read_text())
+    config["agent"] = "fb"
+    config["fb"]["hidden_dim"] = 64
+    (mixed / "config.json").write_text(json.dumps(config))
+    assert main(["zeroshot", str(mixed), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE]) == 2
+    assert "another configuration" in capsys.readouterr().err
+
+
+def test_resume_with_other_config_is_refused(pretrained: Path, capsys):
+    assert main(pretrain_args(pretrained, 3000, extra=["--resume", "--exploration.alpha", "50"])) == 2
+    assert "exploration" in capsys.readouterr().err
+
+
+def test_unknown_preset_and_option_values(tmp_path: Path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["pretrain", "--preset", "huge", "--run-dir", str(tmp_path / "x")])
+    assert exc.value.code == 2
+    assert "huge" in capsys.readouterr().err
+    assert main(pretrain_args(tmp_path / "y", 1000, extra=["--fb.backward-input", "future"])) == 2
+    assert "backward_input" in capsys.readouterr().err
+    assert main(pretrain_args(tmp_path / "z", 1000, extra=["--domain", "jaco"])) == 2
+    assert "walker" in capsys.readouterr().err
+    assert not (tmp_path / "y").exists() and not (tmp_path / "z").exists()
+
+
+def test_cli_help_and_tasks_as_a_real_process():
+    """The installed entry point runs as a separate process (what a user types)."""
+    out = subprocess.run([sys.executable, "-m", "dvfb", "tasks"], capture_output=True, text=True, check=True).stdout
+    for name in ("walker_flip", "quadruped_jump", "hopper_flip_backward", "cheetah_walk_backward",
+                 "point_mass_maze_reach_bottom_right"):
+        assert name in out
+    help_text = subprocess.run([sys.executable, "-m", "dvfb", "pretrain", "--help"], capture_output=True,
+                               text=True, check=True).stdout
+    assert "--fb.hidden-dim" in help_text and "(default: 256)" in help_text and "--exploration.alpha" in help_text
