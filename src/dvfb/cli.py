@@ -139,6 +139,30 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_random_policy(args: argparse.Namespace) -> int:
+    """Returns of a uniform-random policy on every task of a domain (the table's floor)."""
+    from dvfb import envs
+    from dvfb.runs import write_json_atomic
+    from dvfb.workflows.zeroshot import random_policy_return
+
+    if args.domain not in envs.DOMAINS:
+        raise ConfigError(f"unknown domain {args.domain!r}; choose one of {', '.join(envs.DOMAINS)}")
+    output = Path(args.output) if args.output else None
+    if output is not None and output.exists() and not args.overwrite:
+        raise ConfigError(f"{output} exists; pass --overwrite to replace it")
+    results = {}
+    for task in envs.tasks_of_domain(args.domain):
+        returns = random_policy_return(task, args.episodes, seed=args.seed)
+        results[task] = {"returns": returns, "mean_return": float(np.mean(returns)),
+                         "std_return": float(np.std(returns))}
+        print(f"{task:<36} {results[task]['mean_return']:9.1f} {results[task]['std_return']:8.1f}")
+    if output is not None:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(output, {"agent": "random", "domain": args.domain, "seed": args.seed,
+                                   "episodes": args.episodes, "tasks": results})
+    return 0
+
+
 # ---------------------------------------------------------------------------------------------
 # Parser
 
@@ -204,6 +228,15 @@ def build_parser() -> argparse.ArgumentParser:
     add_arguments(p, InferenceConfig, prefix="inference.")
     add_arguments(p, FinetuneConfig, prefix="finetune.")
     p.set_defaults(func=cmd_finetune)
+
+    p = sub.add_parser("random-policy", help="returns of a uniform-random policy on a domain's tasks",
+                       description="Evaluate a uniform-random policy on every task of a domain.")
+    p.add_argument("--domain", required=True, help="domain name")
+    p.add_argument("--episodes", type=int, default=10, help="episodes per task (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="(default: %(default)s)")
+    p.add_argument("--output", default=None, help="write the returns to this JSON file")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.set_defaults(func=cmd_random_policy)
 
     p = sub.add_parser("demo", help="short pre-train -> zero-shot on every task -> table",
                        description="The README's end-to-end demo on the small CPU preset.")

@@ -22,7 +22,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from dvfb import envs
 from dvfb.agents import make_agent
