@@ -3,8 +3,9 @@
 # pre-trained on point_mass_maze and walker, zero-shot on every task of each domain, plus a
 # uniform-random policy. Runs one job at a time (the machine has 2 cores).
 #   usage: scripts/cpu_experiment.sh [FRAMES] [OUT_DIR]
+# Re-running with a larger FRAMES resumes each run from its last checkpoint and extends it.
 set -euo pipefail
-FRAMES=${1:-50000}
+FRAMES=${1:-30000}
 OUT=${2:-runs/cpu_experiment}
 DVFB=${DVFB:-dvfb}
 mkdir -p "$OUT"
@@ -12,9 +13,14 @@ for domain in point_mass_maze walker; do
   "$DVFB" random-policy --domain "$domain" --episodes 10 --output "$OUT/random_${domain}.json" --overwrite
   for agent in dvfb fb; do
     run="$OUT/${agent}_${domain}_s0"
+    done_frames=0
     if [ -f "$run/pretrain_summary.json" ]; then
-      echo "== $run already pre-trained"
+      done_frames=$(python -c "import json,sys; print(json.load(open(sys.argv[1]))['frames'])" "$run/pretrain_summary.json")
+    fi
+    if [ "$done_frames" -ge "$FRAMES" ]; then
+      echo "== $run already pre-trained for $done_frames frames"
     elif [ -f "$run/checkpoints/latest" ]; then
+      # Continue an interrupted run, or extend a finished one to FRAMES.
       "$DVFB" pretrain --agent "$agent" --domain "$domain" --preset small --frames "$FRAMES" --seed 0 \
         --run-dir "$run" --no-progress --resume
     else
