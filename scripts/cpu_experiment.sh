@@ -8,6 +8,9 @@ set -euo pipefail
 FRAMES=${1:-30000}
 OUT=${2:-runs/cpu_experiment}
 DVFB=${DVFB:-dvfb}
+# One torch thread: the small preset is overhead-bound, and one thread degrades gracefully when
+# the machine is shared (two OpenMP threads on two busy cores do not).
+THREADS=${THREADS:-1}
 mkdir -p "$OUT"
 for domain in point_mass_maze walker; do
   "$DVFB" random-policy --domain "$domain" --episodes 10 --output "$OUT/random_${domain}.json" --overwrite
@@ -22,10 +25,10 @@ for domain in point_mass_maze walker; do
     elif [ -f "$run/checkpoints/latest" ]; then
       # Continue an interrupted run, or extend a finished one to FRAMES.
       "$DVFB" pretrain --agent "$agent" --domain "$domain" --preset small --frames "$FRAMES" --seed 0 \
-        --run-dir "$run" --no-progress --resume
+        --run-dir "$run" --no-progress --torch-threads "$THREADS" --resume
     else
       "$DVFB" pretrain --agent "$agent" --domain "$domain" --preset small --frames "$FRAMES" --seed 0 \
-        --run-dir "$run" --no-progress --overwrite
+        --run-dir "$run" --no-progress --torch-threads "$THREADS" --overwrite
     fi
     "$DVFB" zeroshot "$run" --task all --overwrite
   done
