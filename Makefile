@@ -6,7 +6,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench install clean
+.PHONY: demo test bench install clean gl-deps
 
 install: $(STAMP)
 
@@ -20,8 +20,21 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/dvfb demo
 
-test: $(STAMP)
+test: $(STAMP) gl-deps
 	$(PY) -m pytest -q
+
+# Software OpenGL (OSMesa) for the rendering tests of `dvfb video` (tests/test_analysis.py).
+# Installed from Debian's libosmesa6 when missing and we are root; otherwise the test says how.
+gl-deps:
+	@if ldconfig -p 2>/dev/null | grep -q 'libOSMesa\.so'; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	  echo "installing libosmesa6 (software OpenGL for the video tests)"; \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libosmesa6 >/dev/null 2>&1 || \
+	  { apt-get update -qq >/dev/null 2>&1 && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libosmesa6 >/dev/null 2>&1; } || \
+	  echo "warning: could not install libosmesa6; the video tests will fail (apt-get install -y libosmesa6)"; \
+	else \
+	  echo "note: libOSMesa is missing and cannot be installed here (not root); the video tests need it: apt-get install -y libosmesa6"; \
+	fi
 
 bench: $(STAMP)
 	$(PY) bench/run.py

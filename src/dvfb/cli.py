@@ -1,4 +1,5 @@
-"""The ``dvfb`` command line: tasks, pretrain, zeroshot, finetune, demo.
+"""The ``dvfb`` command line: tasks, pretrain, zeroshot, finetune, demo, and the reports and analyses
+(report, analyze-value, analyze-exploration, video).
 
 Every option of the typed run configuration is a flag (nested fields as ``--fb.hidden-dim``), shown
 with its default in ``--help``. Errors caused by input (unknown task, bad run directory, mismatched
@@ -164,6 +165,78 @@ def cmd_random_policy(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------------------------
+# Reports and analyses (dvfb.analysis)
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """Tables 1 and 2 of the paper and fine-tuning curves from run directories."""
+    from dvfb.analysis.report import make_report
+    from dvfb.analysis.tables import to_markdown
+
+    report = make_report(args.runs, args.out, spread="se" if args.stderr else "std",
+                         random_files=args.random or (), overwrite=args.overwrite)
+    for table in (report.zeroshot, report.finetune):
+        if table is not None:
+            print(f"## {table.title}\n\n{to_markdown(table)}\n")
+    for note in report.notes:
+        print(f"note: {note}")
+    print(f"report written to {report.out_dir} ({len(report.files)} files; see {report.out_dir / 'report.md'})")
+    return 0
+
+
+def cmd_analyze_value(args: argparse.Namespace) -> int:
+    """Skill value vs return (paper §4, Fig. 3b)."""
+    from dvfb.analysis.value import analyze_value
+    from dvfb.workflows.config import InferenceConfig
+
+    summary = analyze_value(args.run, args.task, skills=args.skills, episodes_per_skill=args.episodes_per_skill,
+                            bins=args.bins, max_steps=args.max_steps, snapshot=args.snapshot, seed=args.seed,
+                            inference=overrides_from_args(args, InferenceConfig, prefix="inference."),
+                            overwrite=args.overwrite)
+
+    def fmt(value):
+        return "n/a" if value is None else f"{value:.3f}"
+
+    print(f"{summary['trajectories']} trajectories on {args.task}: Spearman(value, return) = "
+          f"{fmt(summary['spearman'])} (own-skill value: {fmt(summary['spearman_own_skill'])})")
+    for b in summary["bins"]:
+        print(f"  return bin {b['bin']} [{b['return_min']:.1f}, {b['return_max']:.1f}] n={b['n']}: "
+              f"Spearman {fmt(b['spearman'])}")
+    print("files: " + ", ".join(summary["files"]))
+    return 0
+
+
+def cmd_analyze_exploration(args: argparse.Namespace) -> int:
+    """Skill trajectories and state coverage (paper Fig. 2)."""
+    from dvfb.analysis.exploration import analyze_exploration
+
+    summary = analyze_exploration(args.run, skills=args.skills, repeats=args.repeats, steps=args.steps,
+                                  actions=args.actions, cell_size=args.cell_size, snapshot=args.snapshot,
+                                  seed=args.seed, overwrite=args.overwrite)
+    print(f"{summary['skills']} skills x {summary['repeats']} runs x {summary['steps']} steps "
+          f"({summary['actions']} actions): coverage {summary['coverage_cells']} cells of "
+          f"{summary['cell_size']:g} over ({', '.join(summary['coordinates'])}); per skill "
+          f"{summary['coverage_cells_per_skill_mean']:.1f}")
+    print("files: " + ", ".join(summary["files"]))
+    return 0
+
+
+def cmd_video(args: argparse.Namespace) -> int:
+    """A video of zero-shot evaluation episodes."""
+    from dvfb.analysis.video import record_video
+    from dvfb.workflows.config import InferenceConfig
+
+    result = record_video(args.run, args.task, episodes=args.episodes, out=args.out, max_steps=args.max_steps,
+                          frame_skip=args.frame_skip, height=args.height, width=args.width, camera=args.camera,
+                          inference=overrides_from_args(args, InferenceConfig, prefix="inference."),
+                          snapshot=args.snapshot, seed=args.seed, infer=args.infer, overwrite=args.overwrite)
+    returns = ", ".join(f"{r:.1f}" for r in result["returns"])
+    print(f"{result['path']}: {result['episodes']} episode(s), {result['frames']} frames at {result['fps']:g} fps; "
+          f"returns {returns}; {result['z_source']}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
 # Parser
 
 
@@ -249,6 +322,83 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run-dir", default="runs/demo", help="(default: %(default)s; replaced on every demo)")
     progress_flag(p)
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser(
+        "report", help="Table 1 (zero-shot), Table 2 (fine-tuning) and fine-tuning curves",
+        formatter_class=_Formatter,
+        description="Markdown and CSV tables shaped like the paper's Table 1 (zero-shot) and Table 2 "
+                    "(fine-tuning, last point of each curve): rows domain/task with per-domain averages, "
+                    "columns methods (from the run configs: dvfb, dvfb_wo_ce, fb, ..._wo_svf, ..._wo_map), "
+                    "mean ± std over seeds (ddof=1), plus expert-normalised scores (URLB expert returns, "
+                    "walker and quadruped). Missing results are gaps. Fine-tuning curves are written as PNG.")
+    p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories or directories containing runs")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--stderr", action="store_true", help="show the standard error over seeds instead of the std")
+    p.add_argument("--random", nargs="+", action="extend", default=None, metavar="FILE.json",
+                   help="random-policy files (dvfb random-policy --output) for a 'random' column; "
+                        "give it after the run directories, or repeat it")
+    p.add_argument("--overwrite", action="store_true", help="replace existing report files in --out")
+    p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser(
+        "analyze-value", help="skill value vs return (paper §4, Fig. 3b)", formatter_class=_Formatter,
+        description="Infer z_r for a task as zero-shot does, roll out mean-action episodes with z_r, prior "
+                    "draws and projected interpolations between them, and report the Spearman correlation "
+                    "between each trajectory's return and its skill value F(s0, a0, z_r).z_r, overall and "
+                    "per return bin. Writes RUN/analysis/value_<task>.{csv,png,json}.")
+    p.add_argument("run", help="pre-training run directory")
+    p.add_argument("--task", required=True, help="task name of the run's domain")
+    p.add_argument("--skills", type=int, default=16, help="skills K, z_r included (default: %(default)s)")
+    p.add_argument("--episodes-per-skill", type=int, default=2, help="episodes per skill (default: %(default)s)")
+    p.add_argument("--bins", type=int, default=4, help="equal-count return bins (default: %(default)s)")
+    p.add_argument("--max-steps", type=int, default=None, help="cut episodes after this many steps (default: full)")
+    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
+    p.add_argument("--seed", type=int, default=None, help="seed (default: the run's seed)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing analysis files")
+    add_arguments(p, InferenceConfig, prefix="inference.")
+    p.set_defaults(func=cmd_analyze_value)
+
+    p = sub.add_parser(
+        "analyze-exploration", help="skill trajectories and state coverage (paper Fig. 2)",
+        formatter_class=_Formatter,
+        description="Run K prior skills R times each in the domain's reward-free environment, plot position "
+                    "vs time (one colour per skill) and count the grid cells visited. Coordinates and "
+                    "default cell sizes: walker/hopper/cheetah torso (x, z) 0.1 m, quadruped torso (x, y) "
+                    "0.25 m, point_mass_maze (x, y) 0.02. Writes RUN/analysis/exploration.{png,json} and "
+                    "exploration_positions.npz.")
+    p.add_argument("run", help="pre-training run directory")
+    p.add_argument("--skills", type=int, default=10, help="skills K drawn from the prior (default: %(default)s)")
+    p.add_argument("--repeats", type=int, default=3, help="runs R per skill (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=1000, help="steps per run, at most 1000 (default: %(default)s)")
+    p.add_argument("--actions", default="rollout", choices=("rollout", "mean"),
+                   help="rollout samples (sigma 0.2, as in pre-training) or mean actions (default: %(default)s)")
+    p.add_argument("--cell-size", type=float, default=None, help="coverage grid cell size (default: per domain)")
+    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
+    p.add_argument("--seed", type=int, default=None, help="seed (default: the run's seed)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing analysis files")
+    p.set_defaults(func=cmd_analyze_exploration)
+
+    p = sub.add_parser(
+        "video", help="video of zero-shot evaluation episodes", formatter_class=_Formatter,
+        description="Render mean-action episodes of pi(s, z_r) (z_r from RUN/zeroshot/<task>.json, else "
+                    "inferred) into a GIF (no extra package) or MP4 (needs imageio-ffmpeg). Needs an OpenGL "
+                    "backend: MUJOCO_GL=egl, or MUJOCO_GL=osmesa PYOPENGL_PLATFORM=osmesa with Debian's "
+                    "libosmesa6.")
+    p.add_argument("run", help="pre-training run directory")
+    p.add_argument("--task", required=True, help="task name of the run's domain")
+    p.add_argument("--episodes", type=int, default=1, help="episodes (default: %(default)s)")
+    p.add_argument("--out", default=None, help="FILE.gif or FILE.mp4 (default: RUN/analysis/video_<task>.gif)")
+    p.add_argument("--max-steps", type=int, default=None, help="cut episodes after this many steps (default: full)")
+    p.add_argument("--frame-skip", type=int, default=2, help="keep every k-th frame (default: %(default)s)")
+    p.add_argument("--height", type=int, default=240, help="(default: %(default)s)")
+    p.add_argument("--width", type=int, default=320, help="(default: %(default)s)")
+    p.add_argument("--camera", default=None, help="camera name or id (default: a per-domain view)")
+    p.add_argument("--infer", action="store_true", help="infer z_r anew even if a zero-shot result exists")
+    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
+    p.add_argument("--seed", type=int, default=None, help="seed (default: the run's seed)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing video file")
+    add_arguments(p, InferenceConfig, prefix="inference.")
+    p.set_defaults(func=cmd_video)
     return parser
 
 

@@ -1,0 +1,321 @@
+"""Run discovery, method names and result records shared by the reports and analyses.
+
+* :func:`method_name` -- the one place that turns run configs into a method label (``dvfb``,
+  ``dvfb_wo_ce``, ``fb``, with ``_wo_svf`` / ``_wo_map`` for the fine-tuning ablations of
+  algorithm.md §9.6 and the paper's Table 3).
+* :func:`discover_runs` -- finds pre-training runs (a ``config.json`` holding a
+  :class:`PretrainConfig`) and fine-tuning runs (a ``config.json`` holding a
+  :class:`FinetuneRunConfig`) under any mix of run directories and parent directories.
+* :func:`collect_scores` -- one :class:`Score` per (method, seed, task) from the zero-shot result
+  files, the last point of each fine-tuning curve, and random-policy files; two files claiming the
+  same (method, seed, task) are an error that names both.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dvfb.errors import DvfbError
+
+log = logging.getLogger(__name__)
+
+# Sub-directories of a run that never hold other runs: not walked during discovery.
+_NOT_RUNS = {"snapshots", "checkpoints", "tb", "metrics", "results", "analysis", "zeroshot", "__pycache__"}
+
+
+class AnalysisError(DvfbError):
+    """Bad input to a report or an analysis (no runs found, duplicate results, unreadable files)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# method names
+
+
+def method_name(agent: str, exploration: Any | None = None, finetune: Any | None = None) -> str:
+    """The method label of a run, from its configs (the only place this naming is decided).
+
+    ``agent`` is the run config's ``agent`` field. ``exploration`` is the pre-training run's
+    :class:`ExplorationConfig` (or its dict): a dvfb run with ``use_ce = false`` is ``dvfb_wo_ce``
+    (paper Table 3, "w/o CE"). ``finetune`` is a fine-tuning run's :class:`FinetuneConfig` (or its
+    dict): ``eta == 0`` appends ``_wo_svf`` and ``reward_mapping = false`` appends ``_wo_map``
+    (algorithm.md §9.6).
+    """
+    name = str(agent)
+    if agent == "dvfb" and exploration is not None and not _field(exploration, "use_ce", True):
+        name = "dvfb_wo_ce"
+    if finetune is not None:
+        if float(_field(finetune, "eta", 0.5)) == 0.0:
+            name += "_wo_svf"
+        if not _field(finetune, "reward_mapping", True):
+            name += "_wo_map"
+    return name
+
+
+def _field(config: Any, name: str, default: Any) -> Any:
+    if isinstance(config, dict):
+        return config.get(name, default)
+    return getattr(config, name, default)
+
+
+def method_sort_key(name: str) -> tuple:
+    """Column order of the tables: dvfb variants, then fb variants, then others, random last."""
+    if name == "random":
+        return (3, name)
+    if name.startswith("dvfb"):
+        return (0, len(name), name)
+    if name.startswith("fb"):
+        return (1, len(name), name)
+    return (2, name)
+
+
+# ---------------------------------------------------------------------------------------------
+# discovery
+
+
+@dataclass
+class PretrainRun:
+    path: Path
+    config: Any  # PretrainConfig
+
+    @property
+    def method(self) -> str:
+        return method_name(self.config.agent, self.config.exploration)
+
+
+@dataclass
+class FinetuneRun:
+    path: Path
+    config: Any  # FinetuneRunConfig
+    parent: PretrainRun | None = None
+
+    @property
+    def method(self) -> str:
+        exploration = self.parent.config.exploration if self.parent is not None else None
+        return method_name(self.config.agent, exploration, self.config.finetune)
+
+    @property
+    def pretrain_seed(self) -> int | None:
+        return self.parent.config.seed if self.parent is not None else None
+
+
+@dataclass
+class Runs:
+    pretrain: list[PretrainRun] = field(default_factory=list)
+    finetune: list[FinetuneRun] = field(default_factory=list)
+
+
+def _config_kind(path: Path) -> str | None:
+    """'pretrain', 'finetune' or None (not a dvfb run config) for a config.json."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise AnalysisError(f"{path} is corrupt and cannot be read: {exc}") from exc
+    if not isinstance(data, dict):
+        return None
+    if "pretrain_run" in data and "task" in data:
+        return "finetune"
+    if "fb" in data and "exploration" in data and "domain" in data:
+        return "pretrain"
+    return None
+
+
+def _load_pretrain(path: Path) -> PretrainRun:
+    from dvfb.runs import RunDir
+    from dvfb.workflows.config import PretrainConfig
+
+    return PretrainRun(path, RunDir(path).load_config(PretrainConfig))
+
+
+def _load_finetune(path: Path, parent: PretrainRun | None) -> FinetuneRun:
+    from dvfb.runs import RunDir
+    from dvfb.workflows.finetune import FinetuneRunConfig
+
+    config = RunDir(path).load_config(FinetuneRunConfig)
+    if parent is None and config.pretrain_run:
+        # A fine-tuning run given on its own: its pre-training run tells whether CE was used.
+        candidate = Path(config.pretrain_run)
+        if (candidate / "config.json").is_file() and _config_kind(candidate / "config.json") == "pretrain":
+            parent = _load_pretrain(candidate)
+    return FinetuneRun(path, config, parent)
+
+
+def discover_runs(paths: Sequence[str | os.PathLike]) -> Runs:
+    """Every pre-training and fine-tuning run in or under ``paths`` (each visited once).
+
+    A directory whose ``config.json`` holds a pre-training config is a pre-training run; its
+    ``finetune/*`` sub-directories are its fine-tuning runs. Other directories are searched
+    recursively. Raises :class:`AnalysisError` if a path does not exist or nothing is found.
+    """
+    runs = Runs()
+    seen: set[Path] = set()
+
+    def add_finetune(path: Path, parent: PretrainRun | None) -> None:
+        key = path.resolve()
+        if key not in seen:
+            seen.add(key)
+            runs.finetune.append(_load_finetune(path, parent))
+
+    def visit(directory: Path) -> None:
+        config_path = directory / "config.json"
+        kind = _config_kind(config_path) if config_path.is_file() else None
+        if kind == "pretrain":
+            key = directory.resolve()
+            if key in seen:
+                return
+            seen.add(key)
+            run = _load_pretrain(directory)
+            runs.pretrain.append(run)
+            finetune_dir = directory / "finetune"
+            if finetune_dir.is_dir():
+                for child in sorted(finetune_dir.iterdir()):
+                    if (child / "config.json").is_file() and _config_kind(child / "config.json") == "finetune":
+                        add_finetune(child, run)
+            return
+        if kind == "finetune":
+            parent = None
+            if directory.parent.name == "finetune" and (directory.parent.parent / "config.json").is_file():
+                grand = directory.parent.parent
+                if _config_kind(grand / "config.json") == "pretrain":
+                    parent = _load_pretrain(grand)
+            add_finetune(directory, parent)
+            return
+        for child in sorted(directory.iterdir()):
+            if child.is_dir() and not child.name.startswith(".") and child.name not in _NOT_RUNS:
+                visit(child)
+
+    for raw in paths:
+        path = Path(raw)
+        if not path.exists():
+            raise AnalysisError(f"{path} does not exist")
+        if not path.is_dir():
+            raise AnalysisError(f"{path} is not a directory (expected a run directory or a directory of runs)")
+        visit(path)
+    runs.pretrain.sort(key=lambda r: str(r.path))
+    runs.finetune.sort(key=lambda r: str(r.path))
+    return runs
+
+
+# ---------------------------------------------------------------------------------------------
+# scores
+
+
+@dataclass(frozen=True)
+class Score:
+    """One number of a table: the return of one method, seed and task, and the file it came from."""
+
+    kind: str  # "zeroshot", "finetune" or "random"
+    method: str
+    domain: str
+    task: str
+    seed: Any  # int, or (pretrain seed, fine-tuning seed) for fine-tuning runs
+    value: float
+    source: Path
+    frames: int | None = None  # fine-tuning frames of the point (Table 2)
+
+
+def read_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise AnalysisError(f"{path} is corrupt and cannot be read: {exc}") from exc
+    if not isinstance(data, dict):
+        raise AnalysisError(f"{path} does not hold a JSON object")
+    return data
+
+
+def _number(path: Path, data: dict, key: str) -> float:
+    value = data.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise AnalysisError(f"{path}: {key!r} is missing or not a number")
+    return float(value)
+
+
+def zeroshot_scores(runs: Iterable[PretrainRun]) -> list[Score]:
+    """The final-snapshot zero-shot results ``RUN/zeroshot/<task>.json`` (paper Table 1).
+
+    ``<task>@<frames>.json`` files (earlier snapshots) are not part of the table.
+    """
+    scores = []
+    for run in runs:
+        directory = run.path / "zeroshot"
+        if not directory.is_dir():
+            continue
+        for path in sorted(directory.glob("*.json")):
+            if "@" in path.stem or path.name.startswith("."):
+                continue
+            data = read_json(path)
+            task = data.get("task", path.stem)
+            scores.append(Score("zeroshot", run.method, run.config.domain, task, run.config.seed,
+                                _number(path, data, "mean_return"), path))
+    return scores
+
+
+def finetune_scores(runs: Iterable[FinetuneRun]) -> list[Score]:
+    """The last point of each fine-tuning curve ``RUN/finetune/<name>/curve.json`` (paper Table 2)."""
+    scores = []
+    for run in runs:
+        path = run.path / "curve.json"
+        if not path.is_file():
+            log.warning("%s has no curve.json yet; skipped", run.path)
+            continue
+        data = read_json(path)
+        curve = data.get("curve")
+        if not isinstance(curve, list) or not curve:
+            raise AnalysisError(f"{path}: 'curve' is missing or empty")
+        last = curve[-1]
+        scores.append(Score("finetune", run.method, run.config.domain, run.config.task,
+                            (run.pretrain_seed, run.config.seed), _number(path, last, "mean_return"), path,
+                            frames=int(_number(path, last, "frames"))))
+    return scores
+
+
+def random_scores(files: Iterable[str | os.PathLike]) -> list[Score]:
+    """Scores of ``dvfb random-policy --output`` files; each file is one seed of the column."""
+    scores = []
+    for raw in files:
+        path = Path(raw)
+        if not path.is_file():
+            raise AnalysisError(f"random-policy file {path} does not exist")
+        data = read_json(path)
+        tasks = data.get("tasks")
+        if not isinstance(tasks, dict) or "domain" not in data:
+            raise AnalysisError(f"{path} is not a random-policy file (written by `dvfb random-policy --output`)")
+        for task, result in sorted(tasks.items()):
+            if not isinstance(result, dict):
+                raise AnalysisError(f"{path}: tasks.{task} is not an object")
+            scores.append(Score("random", "random", data["domain"], task, data.get("seed", 0),
+                                _number(path, result, "mean_return"), path))
+    return scores
+
+
+def check_duplicates(scores: Iterable[Score]) -> None:
+    """Two files with the same (kind, method, seed, task) are an error naming both."""
+    first: dict[tuple, Path] = {}
+    for score in scores:
+        key = (score.kind, score.method, score.seed, score.task)
+        if key in first and first[key] != score.source:
+            seed = score.seed
+            if isinstance(seed, tuple):
+                seed = f"pretrain seed {seed[0]}, fine-tuning seed {seed[1]}"
+            raise AnalysisError(
+                f"duplicate {score.kind} result for method {score.method!r}, seed {seed}, task "
+                f"{score.task!r}: {first[key]} and {score.source}; pass only one of them")
+        first.setdefault(key, score.source)
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with NaN/inf floats replaced by None, so the JSON written is strict JSON."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value

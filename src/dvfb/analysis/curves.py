@@ -1,0 +1,107 @@
+"""Fine-tuning curves (the paper's fine-tuning figures): return vs fine-tuning frames.
+
+One PNG per task, one line per method (named by :func:`dvfb.analysis.common.method_name`): the
+mean over seeds of each ``curve.json`` evaluation, with a band of ± the sample std over seeds
+(ddof = 1), or ± the standard error with ``spread="se"``. Seeds need not share every evaluation
+point: each point averages the seeds that have it. Figures are drawn with matplotlib's
+object-oriented API on an Agg canvas (no pyplot state, no display needed).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dvfb.analysis.common import AnalysisError, FinetuneRun, read_json, method_sort_key
+from dvfb.analysis.tables import STD_DDOF
+
+
+@dataclass
+class CurveBand:
+    frames: np.ndarray
+    mean: np.ndarray
+    spread: np.ndarray  # NaN where only one seed has the point
+    n: np.ndarray
+
+
+def load_curves(runs: Sequence[FinetuneRun]) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
+    """``{task: {method: [(frames, mean_return), ...one per run]}}`` from the runs' curve.json."""
+    curves: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
+    for run in runs:
+        path = run.path / "curve.json"
+        if not path.is_file():
+            continue
+        points = read_json(path).get("curve")
+        if not isinstance(points, list) or not points:
+            raise AnalysisError(f"{path}: 'curve' is missing or empty")
+        try:
+            frames = np.array([float(p["frames"]) for p in points])
+            returns = np.array([float(p["mean_return"]) for p in points])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise AnalysisError(f"{path}: a curve point lacks frames or mean_return ({exc})") from exc
+        curves[run.config.task][run.method].append((frames, returns))
+    return curves
+
+
+def aggregate(curves: Sequence[tuple[np.ndarray, np.ndarray]], spread: str = "std") -> CurveBand:
+    """Mean and spread across runs at every frame count any run evaluated at."""
+    frames = np.unique(np.concatenate([f for f, _ in curves]))
+    mean, band, count = [], [], []
+    for x in frames:
+        values = np.array([r[f == x][0] for f, r in curves if np.any(f == x)])
+        mean.append(values.mean())
+        count.append(values.size)
+        if values.size > 1:
+            std = values.std(ddof=STD_DDOF)
+            band.append(std / math.sqrt(values.size) if spread == "se" else std)
+        else:
+            band.append(float("nan"))
+    return CurveBand(frames, np.array(mean), np.array(band), np.array(count))
+
+
+def _plot_task(ax, task: str, by_method: dict[str, list], spread: str) -> None:
+    for method in sorted(by_method, key=method_sort_key):
+        band = aggregate(by_method[method], spread)
+        seeds = len(by_method[method])
+        (line,) = ax.plot(band.frames, band.mean, marker="o", markersize=3, label=f"{method} ({seeds} seed{'s' * (seeds != 1)})")
+        ok = ~np.isnan(band.spread)
+        if ok.any():
+            ax.fill_between(band.frames[ok], (band.mean - band.spread)[ok], (band.mean + band.spread)[ok],
+                            color=line.get_color(), alpha=0.2, linewidth=0)
+    ax.set_title(task)
+    ax.set_xlabel("fine-tuning frames")
+    ax.set_ylabel("episode return")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+
+
+def plot_curves(curves: dict[str, dict[str, list]], out_dir: Path, spread: str = "std") -> list[Path]:
+    """``finetune_<task>.png`` per task and ``finetune_all.png`` (a grid of every task)."""
+    from matplotlib.figure import Figure
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for task in sorted(curves):
+        fig = Figure(figsize=(5, 3.6), dpi=100, layout="constrained")
+        _plot_task(fig.add_subplot(), task, curves[task], spread)
+        path = out_dir / f"finetune_{task}.png"
+        fig.savefig(path)
+        written.append(path)
+    if curves:
+        tasks = sorted(curves)
+        ncols = min(4, len(tasks))
+        nrows = math.ceil(len(tasks) / ncols)
+        fig = Figure(figsize=(4.5 * ncols, 3.4 * nrows), dpi=100, layout="constrained")
+        what = "standard error" if spread == "se" else "std"
+        fig.suptitle(f"Fine-tuning: mean episode return over seeds ± {what}")
+        for i, task in enumerate(tasks):
+            _plot_task(fig.add_subplot(nrows, ncols, i + 1), task, curves[task], spread)
+        path = out_dir / "finetune_all.png"
+        fig.savefig(path)
+        written.append(path)
+    return written

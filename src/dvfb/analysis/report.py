@@ -1,0 +1,115 @@
+"""``dvfb report``: the paper's Table 1 (zero-shot), Table 2 (fine-tuning) and fine-tuning curves.
+
+Inputs are run directories or directories of runs (see :func:`dvfb.analysis.common.discover_runs`)
+and optional random-policy files. Outputs, in ``out_dir``:
+
+* ``report.md`` -- both tables (raw returns and expert-normalised), notes, links to the curves;
+* ``table1_zeroshot.md/.csv`` and ``table1_zeroshot_normalised.csv`` (when zero-shot results exist);
+* ``table2_finetune.md/.csv`` and ``table2_finetune_normalised.csv`` (when fine-tuning runs exist);
+* ``curves/finetune_<task>.png`` and ``curves/finetune_all.png`` (when fine-tuning runs exist).
+"""
+
+from __future__ import annotations
+
+import os
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from dvfb.analysis.common import (
+    AnalysisError,
+    check_duplicates,
+    discover_runs,
+    finetune_scores,
+    random_scores,
+    zeroshot_scores,
+)
+from dvfb.analysis.curves import load_curves, plot_curves
+from dvfb.analysis.tables import Table, build_table, table_markdown_section, to_csv
+
+TABLE1 = "Table 1: zero-shot"
+TABLE2 = "Table 2: fine-tuning (last evaluation of each curve)"
+
+
+@dataclass
+class Report:
+    out_dir: Path
+    zeroshot: Table | None = None
+    finetune: Table | None = None
+    files: list[Path] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+def _outputs(out_dir: Path, has_zeroshot: bool, has_finetune: bool) -> list[Path]:
+    names = ["report.md"]
+    if has_zeroshot:
+        names += ["table1_zeroshot.md", "table1_zeroshot.csv", "table1_zeroshot_normalised.csv"]
+    if has_finetune:
+        names += ["table2_finetune.md", "table2_finetune.csv", "table2_finetune_normalised.csv"]
+    return [out_dir / n for n in names]
+
+
+def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, *, spread: str = "std",
+                random_files: Sequence[str | os.PathLike] = (), overwrite: bool = False) -> Report:
+    """Discover runs under ``paths`` and write the tables and curves into ``out_dir``."""
+    out_dir = Path(out_dir)
+    runs = discover_runs(paths)
+    zs = zeroshot_scores(runs.pretrain)
+    ft = finetune_scores(runs.finetune)
+    rnd = random_scores(random_files)
+    check_duplicates([*zs, *ft, *rnd])
+    if not zs and not ft:
+        found = f"{len(runs.pretrain)} pre-training run(s)" if runs.pretrain else "no dvfb run"
+        raise AnalysisError(f"found {found} and no zero-shot or fine-tuning results under "
+                            f"{', '.join(map(str, paths))}; run `dvfb zeroshot` or `dvfb finetune` first")
+    report = Report(out_dir)
+    curves = load_curves(runs.finetune) if ft else {}
+    planned = _outputs(out_dir, bool(zs or rnd), bool(ft))
+    planned += [out_dir / "curves" / f"finetune_{task}.png" for task in curves]
+    existing = [p for p in planned if p.exists()]
+    if existing and not overwrite:
+        raise AnalysisError(f"{existing[0]} exists; pass --overwrite to replace the report in {out_dir}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    sections = ["# dvfb report", "", "Runs: " + ", ".join(f"`{p}`" for p in paths) + ".", ""]
+    if zs or rnd:
+        # The random column only makes sense next to the zero-shot table (the floor of Table 1).
+        report.zeroshot = build_table([*zs, *rnd], TABLE1, spread)
+        section = table_markdown_section(report.zeroshot)
+        _write(out_dir / "table1_zeroshot.md", section + "\n", report)
+        _write(out_dir / "table1_zeroshot.csv", to_csv(report.zeroshot), report)
+        _write(out_dir / "table1_zeroshot_normalised.csv", to_csv(report.zeroshot, normalised=True), report)
+        sections += [section, ""]
+    if ft:
+        report.finetune = build_table(ft, TABLE2, spread)
+        section = table_markdown_section(report.finetune)
+        frames = Counter(s.frames for s in ft)
+        if len(frames) > 1:
+            report.notes.append("fine-tuning runs end at different frame counts: " + ", ".join(
+                f"{n} run(s) at {f}" for f, n in sorted(frames.items())) + "; Table 2 mixes budgets")
+        unfinished = [str(r.path) for r in runs.finetune if not (r.path / "finetune_summary.json").is_file()]
+        if unfinished:
+            report.notes.append("unfinished fine-tuning runs (last evaluation used): " + ", ".join(unfinished))
+        frames_text = ", ".join(str(f) for f in sorted(frames))
+        section = section.replace("Episode return:", f"Fine-tuning frames at the last point: {frames_text}. "
+                                  "Episode return:", 1)
+        _write(out_dir / "table2_finetune.md", section + "\n", report)
+        _write(out_dir / "table2_finetune.csv", to_csv(report.finetune), report)
+        _write(out_dir / "table2_finetune_normalised.csv", to_csv(report.finetune, normalised=True), report)
+        sections += [section, ""]
+        pngs = plot_curves(curves, out_dir / "curves", spread)
+        report.files += pngs
+        sections += ["## Fine-tuning curves", ""]
+        sections += [f"![{p.stem}](curves/{p.name})" for p in pngs]
+        sections.append("")
+    if report.notes:
+        sections += ["## Notes", ""] + [f"- {note}" for note in report.notes] + [""]
+    _write(out_dir / "report.md", "\n".join(sections), report)
+    return report
+
+
+def _write(path: Path, text: str, report: Report) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")
+    report.files.append(path)

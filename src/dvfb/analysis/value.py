@@ -1,0 +1,214 @@
+"""Skill-value analysis (paper §4, Fig. 3b): does the FB value rank trajectories by their return?
+
+Protocol (``dvfb analyze-value RUN --task T``):
+
+1. infer z_r for the task exactly as zero-shot does (algorithm.md §8.1-8.2, through
+   :func:`dvfb.workflows.evaluate.collect_inference_data` and
+   :func:`dvfb.workflows.zeroshot.infer_task_vector`, budgets from ``--inference.*``);
+2. build K skills: z_r itself and K-1 skills ``proj((1 - lam) z_r + lam z_k)`` with prior draws
+   ``z_k ~ p(z)`` and ``lam`` evenly spaced in (0, 1] (``lam = 1`` is a pure prior draw), so the
+   returns range from z_r's down to a random skill's;
+3. roll out R mean-action episodes per skill in the task (the §8.3 evaluation policy);
+4. per trajectory: its return, and the skill value at its start
+   ``Q_M = min_k F_k(s0, a0, z_r) . z_r`` (:meth:`FBAgent.skill_value`, ``a0`` the trajectory's
+   first action) -- the value the dual-value fine-tuning uses for the task. Also recorded:
+   ``F(s0, a0, z) . z_r`` with the trajectory's own skill z (the FB estimate of that skill's
+   task value);
+5. the Spearman rank correlation (``scipy.stats.spearmanr``) between value and return, over all
+   trajectories and within equal-count return bins (quantile bins by rank).
+
+Outputs under ``RUN/analysis/``: ``value_<task>.csv`` (one row per trajectory), ``value_<task>.png``
+(scatter) and ``value_<task>.json`` (the correlations and the settings).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dvfb.analysis.common import AnalysisError, json_safe
+
+NAN = float("nan")
+
+
+# ---------------------------------------------------------------------------------------------
+# statistics
+
+
+def spearman(x: Sequence[float], y: Sequence[float]) -> float:
+    """Spearman's rho of two sequences; NaN with fewer than 3 points or a constant sequence."""
+    from scipy.stats import spearmanr
+
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    if x.shape != y.shape or x.ndim != 1:
+        raise ValueError("spearman needs two 1-D sequences of the same length")
+    if x.size < 3 or np.ptp(x) == 0 or np.ptp(y) == 0:
+        return NAN
+    return float(spearmanr(x, y).statistic)
+
+
+def quantile_bins(returns: Sequence[float], bins: int) -> list[np.ndarray]:
+    """Indices of ``bins`` equal-count groups of increasing return (quantile bins by rank).
+
+    Ties are broken by position (a stable sort), so every trajectory is in exactly one bin and the
+    bin sizes differ by at most one.
+    """
+    if bins < 1:
+        raise ValueError("bins must be >= 1")
+    order = np.argsort(np.asarray(returns, dtype=float), kind="stable")
+    return [part for part in np.array_split(order, min(bins, max(len(order), 1))) if part.size]
+
+
+def binned_spearman(values: Sequence[float], returns: Sequence[float], bins: int) -> list[dict]:
+    """Spearman's rho within each return bin (lowest returns first)."""
+    values, returns = np.asarray(values, dtype=float), np.asarray(returns, dtype=float)
+    result = []
+    for i, index in enumerate(quantile_bins(returns, bins)):
+        result.append({"bin": i, "n": int(index.size), "return_min": float(returns[index].min()),
+                       "return_max": float(returns[index].max()),
+                       "spearman": spearman(values[index], returns[index])})
+    return result
+
+
+# ---------------------------------------------------------------------------------------------
+# skills and rollouts
+
+
+def skill_set(z_r: torch.Tensor, count: int, generator: torch.Generator) -> tuple[torch.Tensor, np.ndarray]:
+    """``count`` skills: z_r first, then projected mixtures with prior draws; returns (z, lam)."""
+    from dvfb.nets import project_to_sphere
+
+    if count < 1:
+        raise AnalysisError("--skills must be at least 1")
+    d = z_r.shape[-1]
+    z_r = z_r.detach().cpu().reshape(1, d)
+    others = count - 1
+    lam = np.linspace(0.0, 1.0, others + 1)[1:] if others else np.zeros(0)
+    prior = project_to_sphere(torch.randn(others, d, generator=generator))
+    lam_t = torch.as_tensor(lam, dtype=torch.float32).reshape(-1, 1)
+    mixed = project_to_sphere((1 - lam_t) * z_r + lam_t * prior) if others else torch.zeros(0, d)
+    return torch.cat([z_r, mixed]), np.concatenate([[0.0], lam])
+
+
+def rollout(agent, env, z: torch.Tensor, max_steps: int | None, explore: bool = False) -> dict:
+    """One episode with a fixed skill; returns the return, s0, a0 and the number of steps."""
+    obs, _ = env.reset()
+    first_obs, first_action = obs.copy(), None
+    total, steps, done = 0.0, 0, False
+    while not done and (max_steps is None or steps < max_steps):
+        action = agent.act(obs, z, explore=explore)
+        if first_action is None:
+            first_action = action.copy()
+        obs, reward, terminated, truncated, _ = env.step(action)
+        total += reward
+        steps += 1
+        done = terminated or truncated
+    return {"return": total, "obs0": first_obs, "action0": first_action, "steps": steps}
+
+
+def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes_per_skill: int = 2,
+                  bins: int = 4, max_steps: int | None = None, inference: dict | None = None,
+                  snapshot: int | None = None, seed: int | None = None, overwrite: bool = False,
+                  device: str | None = None) -> dict:
+    """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary."""
+    from dvfb import envs
+    from dvfb.config import merge, to_dict
+    from dvfb.nets import skill_values
+    from dvfb.runs import write_json_atomic
+    from dvfb.workflows.common import check_task_in_domain, load_pretrained_agent, open_pretrained_run, seed_everything
+    from dvfb.workflows.evaluate import collect_inference_data
+    from dvfb.workflows.zeroshot import infer_task_vector
+
+    if episodes_per_skill < 1:
+        raise AnalysisError("--episodes-per-skill must be at least 1")
+    if max_steps is not None and max_steps < 1:
+        raise AnalysisError("--max-steps must be at least 1")
+    run, config = open_pretrained_run(run_path)
+    check_task_in_domain(task, config.domain)
+    cfg = merge(config.inference, inference or {})
+    out_dir = run.path / "analysis"
+    outputs = [out_dir / f"value_{task}.{ext}" for ext in ("csv", "png", "json")]
+    existing = [p for p in outputs if p.exists()]
+    if existing and not overwrite:
+        raise AnalysisError(f"{existing[0]} exists; pass --overwrite to replace it")
+    agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
+    seed = config.seed if seed is None else seed
+    rng = seed_everything(seed)
+    started = time.time()
+    max_len = envs.TASKS[task].episode_length
+
+    env = envs.make(task, seed=seed)
+    buffer = collect_inference_data(agent, env, cfg.steps, cfg.random_action_steps, rng, max_len)
+    z_r, info = infer_task_vector(agent, buffer, cfg)
+    del buffer
+    generator = torch.Generator().manual_seed(seed)
+    zs, lam = skill_set(z_r, skills, generator)
+
+    eval_env = envs.make(task, seed=seed)
+    rows = []
+    for k in range(zs.shape[0]):
+        z = zs[k].to(agent.device)
+        for episode in range(episodes_per_skill):
+            result = rollout(agent, eval_env, z, max_steps)
+            rows.append({"skill": k, "lam": float(lam[k]), "episode": episode, **result})
+    obs0 = torch.as_tensor(np.stack([r["obs0"] for r in rows]), dtype=torch.float32, device=agent.device)
+    act0 = torch.as_tensor(np.stack([r["action0"] for r in rows]), dtype=torch.float32, device=agent.device)
+    own_z = zs[[r["skill"] for r in rows]].to(agent.device)
+    task_z = z_r.to(agent.device)
+    value = agent.skill_value(obs0, act0, task_z).cpu().numpy().astype(float)
+    with torch.no_grad():
+        forward = agent.forward_map(obs0, act0, own_z)  # (2, N, d): the successor features of each own skill
+        own_value = skill_values(forward, task_z.expand_as(own_z)).amin(0).cpu().numpy().astype(float)
+    returns = np.array([r["return"] for r in rows], dtype=float)
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with open(outputs[0], "w", newline="", encoding="utf-8") as file:
+        writer = csv.writer(file, lineterminator="\n")
+        writer.writerow(["trajectory", "skill", "lam", "kind", "episode", "steps", "return", "value",
+                         "value_own_skill"])
+        for i, r in enumerate(rows):
+            kind = "z_r" if r["lam"] == 0 else ("prior" if r["lam"] == 1 else "interpolated")
+            writer.writerow([i, r["skill"], repr(r["lam"]), kind, r["episode"], r["steps"], repr(float(r["return"])),
+                             repr(float(value[i])), repr(float(own_value[i]))])
+    rho = spearman(value, returns)
+    summary = {
+        "analysis": "skill value vs return (paper §4, Fig. 3b)", "task": task, "domain": config.domain,
+        "agent": config.agent, "run": str(run.path), "snapshot_frames": snapshot, "seed": seed,
+        "skills": int(zs.shape[0]), "episodes_per_skill": episodes_per_skill, "trajectories": len(rows),
+        "max_steps": max_steps, "actions": "mean (evaluation policy, §8.3)",
+        "value": "min_k F_k(s0, a0, z_r) . z_r at each trajectory's first state and action",
+        "spearman": rho, "spearman_own_skill": spearman(own_value, returns), "bins": binned_spearman(value, returns, bins),
+        "return_mean": float(returns.mean()), "return_min": float(returns.min()), "return_max": float(returns.max()),
+        "z_r_return_mean": float(returns[lam[[r["skill"] for r in rows]] == 0].mean()),
+        "inference": to_dict(cfg), "inference_info": info, "wall_clock_s": time.time() - started,
+        "files": [str(p) for p in outputs],
+    }
+    _scatter(outputs[1], value, returns, lam[[r["skill"] for r in rows]], task, config.agent, rho)
+    summary = json_safe(summary)
+    write_json_atomic(outputs[2], summary)
+    return summary
+
+
+def _scatter(path: Path, value: np.ndarray, returns: np.ndarray, lam: np.ndarray, task: str, agent: str,
+             rho: float) -> None:
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(5.6, 4.4), dpi=100, layout="constrained")
+    ax = fig.add_subplot()
+    points = ax.scatter(value, returns, c=lam, cmap="viridis", vmin=0, vmax=1, s=18, edgecolors="none")
+    best = lam == 0
+    ax.scatter(value[best], returns[best], facecolors="none", edgecolors="red", s=60, label="z_r")
+    fig.colorbar(points, ax=ax, label="lam (0 = z_r, 1 = prior draw)")
+    rho_text = "n/a" if math.isnan(rho) else f"{rho:.3f}"
+    fig.suptitle(f"{agent} on {task}\nSpearman(value, return) = {rho_text}, n = {value.size}", fontsize=10)
+    ax.set_xlabel("skill value  F(s0, a0, z_r) . z_r")
+    ax.set_ylabel("episode return")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    fig.savefig(path)

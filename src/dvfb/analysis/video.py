@@ -1,0 +1,203 @@
+"""Videos of zero-shot evaluation episodes (``dvfb video``), rendered headless through MuJoCo.
+
+The policy is the zero-shot evaluation policy of algorithm.md §8.3: mean actions of
+``pi(s, z_r)``. z_r is read from ``RUN/zeroshot/<task>.json`` when that result exists for the same
+snapshot (so the video shows the policy that was scored), otherwise it is inferred as zero-shot
+does (§8.1-8.2, budgets from ``--inference.*``).
+
+Rendering needs an OpenGL backend, chosen by the ``MUJOCO_GL`` environment variable before
+dm_control is imported (``dvfb.envs`` picks ``egl`` on a headless machine with an EGL library, see
+``dvfb/envs/_mujoco_gl.py``). When no backend works, :class:`RenderError` (exit status 2 in the
+CLI) says how to enable one: ``MUJOCO_GL=egl``, or ``MUJOCO_GL=osmesa`` with
+``PYOPENGL_PLATFORM=osmesa`` and Debian's ``libosmesa6`` package.
+
+Formats, chosen by the file suffix: ``.gif`` through imageio's Pillow plugin (no extra package);
+``.mp4`` through imageio's ffmpeg plugin, which needs the ``imageio-ffmpeg`` package (a PyPI wheel
+that bundles an ffmpeg binary: ``pip install imageio-ffmpeg``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dvfb.analysis.common import AnalysisError, read_json
+from dvfb.errors import DvfbError
+
+FORMATS = (".gif", ".mp4")
+# Camera per domain: the tracking side views of the stock models, the maze's top-down view.
+DEFAULT_CAMERAS = {"walker": "side", "hopper": "cam0", "cheetah": "side", "quadruped": "y",
+                   "point_mass_maze": "fixed"}
+
+
+class RenderError(AnalysisError):
+    """No OpenGL backend works (or the chosen one failed): says how to enable one."""
+
+
+def gl_hint() -> str:
+    """How to get a working MuJoCo OpenGL backend on a headless machine."""
+    return ("MuJoCo needs an OpenGL backend to render: set MUJOCO_GL=egl (GPU driver or Mesa's EGL) or "
+            "MUJOCO_GL=osmesa with PYOPENGL_PLATFORM=osmesa (software rendering; on Debian/Ubuntu install it "
+            "with `apt-get install libosmesa6`) before running dvfb, e.g. "
+            "`MUJOCO_GL=osmesa PYOPENGL_PLATFORM=osmesa dvfb video RUN --task TASK`")
+
+
+def _render_error(exc: BaseException) -> RenderError:
+    backend = os.environ.get("MUJOCO_GL")
+    backend = f"MUJOCO_GL={backend}" if backend else "MUJOCO_GL unset"
+    detail = (str(exc).strip().splitlines() or [""])[0]
+    return RenderError(f"cannot render ({backend}; {type(exc).__name__}: {detail}). {gl_hint()}")
+
+
+def check_output(path: Path) -> None:
+    """The suffix must be a supported format; MP4 needs imageio-ffmpeg."""
+    suffix = path.suffix.lower()
+    if suffix not in FORMATS:
+        raise AnalysisError(f"unsupported video format {path.suffix or '(no suffix)'!r} for {path}; "
+                            f"use one of {', '.join(FORMATS)}")
+    if suffix == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise AnalysisError("writing MP4 needs the imageio-ffmpeg package (`pip install imageio-ffmpeg`, a "
+                            "wheel that bundles ffmpeg); or write a GIF instead: --out FILE.gif")
+
+
+class Renderer:
+    """Frames of one environment's physics; failures become :class:`RenderError`."""
+
+    def __init__(self, env, height: int, width: int, camera: str | int):
+        self.physics = env.unwrapped.physics
+        self.height, self.width = height, width
+        model = self.physics.model
+        if isinstance(camera, str) and not camera.lstrip("-").isdigit():
+            names = [model.id2name(i, "camera") for i in range(model.ncam)]
+            if camera not in names:
+                raise AnalysisError(f"unknown camera {camera!r}; this model has {', '.join(names) or 'none'} "
+                                    "(or give a camera id, -1 = free camera)")
+            self.camera = names.index(camera)
+        else:
+            self.camera = int(camera)
+
+    def frame(self) -> np.ndarray:
+        try:
+            return self.physics.render(height=self.height, width=self.width, camera_id=self.camera)
+        except DvfbError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - every backend fails differently (RuntimeError, ImportError, EGL errors)
+            raise _render_error(exc) from exc
+
+    def close(self) -> None:
+        # Freeing the GL context now avoids dm_control's noisy clean-up at interpreter exit.
+        try:
+            self.physics.free()
+        except Exception:  # noqa: BLE001
+            pass
+
+
+def make_render_env(task: str, seed: int):
+    """The task's environment; dm_control's import fails here when MUJOCO_GL is invalid."""
+    from dvfb import envs
+
+    try:
+        return envs.make(task, seed=seed)
+    except DvfbError:
+        raise
+    except (RuntimeError, ImportError, OSError) as exc:
+        raise _render_error(exc) from exc
+
+
+def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:
+    """GIF (Pillow, frame duration in ms, looping) or MP4 (ffmpeg, H.264)."""
+    import imageio.v2 as iio2
+    import imageio.v3 as iio3
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".gif":
+        # GIF frame delays are whole centiseconds (Pillow truncates milliseconds to them), and viewers
+        # replace delays under 20 ms by 100 ms: round to the nearest 10 ms, at least 20 ms.
+        delay_ms = 10 * max(2, round(100.0 / fps))
+        iio3.imwrite(path, np.stack(frames), extension=".gif", duration=delay_ms, loop=0)
+    else:
+        with iio2.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=7,
+                             macro_block_size=8) as writer:
+            for frame in frames:
+                writer.append_data(frame)
+
+
+def _task_vector(run, config, agent, task: str, snapshot: int, final: int, inference: dict | None,
+                 seed: int, infer: bool) -> tuple[torch.Tensor, str]:
+    from dvfb import envs
+    from dvfb.config import merge
+    from dvfb.workflows.common import seed_everything
+    from dvfb.workflows.evaluate import collect_inference_data
+    from dvfb.workflows.zeroshot import infer_task_vector, result_path
+
+    stored = result_path(run, task, snapshot, final)
+    if stored.is_file() and not infer:
+        data = read_json(stored)
+        if isinstance(data.get("z"), list) and data.get("snapshot_frames") == snapshot:
+            return torch.tensor(data["z"], dtype=torch.float32, device=agent.device), f"z from {stored}"
+    cfg = merge(config.inference, inference or {})
+    rng = seed_everything(seed)
+    env = envs.make(task, seed=seed)
+    buffer = collect_inference_data(agent, env, cfg.steps, cfg.random_action_steps, rng,
+                                    envs.TASKS[task].episode_length)
+    z, _info = infer_task_vector(agent, buffer, cfg)
+    return z, f"z inferred from {cfg.steps} reward-labelled steps"
+
+
+def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str | Path | None = None,
+                 max_steps: int | None = None, frame_skip: int = 2, height: int = 240, width: int = 320,
+                 camera: str | int | None = None, inference: dict | None = None, snapshot: int | None = None,
+                 seed: int | None = None, infer: bool = False, overwrite: bool = False,
+                 device: str | None = None) -> dict:
+    """Render ``episodes`` evaluation episodes of the run's zero-shot policy on ``task`` into one video."""
+    from dvfb.workflows.common import check_task_in_domain, load_pretrained_agent, open_pretrained_run
+
+    for name, value in (("--episodes", episodes), ("--frame-skip", frame_skip), ("--height", height),
+                        ("--width", width)):
+        if value < 1:
+            raise AnalysisError(f"{name} must be at least 1")
+    if max_steps is not None and max_steps < 1:
+        raise AnalysisError("--max-steps must be at least 1")
+    run, config = open_pretrained_run(run_path)
+    check_task_in_domain(task, config.domain)
+    out = Path(out) if out is not None else run.path / "analysis" / f"video_{task}.gif"
+    check_output(out)
+    if out.exists() and not overwrite:
+        raise AnalysisError(f"{out} exists; pass --overwrite to replace it")
+    seed = config.seed if seed is None else seed
+    started = time.time()
+
+    # Rendering is checked first, so a missing backend fails in seconds, before any inference.
+    env = make_render_env(task, seed)
+    renderer = Renderer(env, height, width, DEFAULT_CAMERAS.get(config.domain, 0) if camera is None else camera)
+    try:
+        env.reset()
+        renderer.frame()
+        agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
+        z, z_source = _task_vector(run, config, agent, task, snapshot, max(config.frames, snapshot), inference,
+                                   seed, infer)
+        frames, returns = [], []
+        fps = env.metadata["render_fps"] / frame_skip
+        for episode in range(episodes):
+            # Reseeding gives the first episode the initial state of the zero-shot evaluation's first.
+            obs, _ = env.reset(seed=seed) if episode == 0 else env.reset()
+            frames.append(renderer.frame())
+            total, steps, done = 0.0, 0, False
+            while not done and (max_steps is None or steps < max_steps):
+                obs, reward, terminated, truncated, _ = env.step(agent.act(obs, z, explore=False))
+                total += reward
+                steps += 1
+                done = terminated or truncated
+                if steps % frame_skip == 0:
+                    frames.append(renderer.frame())
+            returns.append(total)
+    finally:
+        renderer.close()
+    write_video(out, frames, fps)
+    return {"path": str(out), "task": task, "episodes": episodes, "returns": returns, "frames": len(frames),
+            "fps": fps, "z_source": z_source, "snapshot_frames": snapshot, "wall_clock_s": time.time() - started}
