@@ -200,3 +200,17 @@ def test_cli_help_and_tasks_as_a_real_process():
     help_text = subprocess.run([sys.executable, "-m", "dvfb", "pretrain", "--help"], capture_output=True,
                                text=True, check=True).stdout
     assert "--fb.hidden-dim" in help_text and "(default: 256)" in help_text and "--exploration.alpha" in help_text
+
+
+def test_code_preset_runs_end_to_end(tmp_path: Path):
+    """The authors' constants: B on their state pairings (needs s'' from replay), alpha 50, RND on s_t."""
+    run_dir = tmp_path / "code"
+    args = pretrain_args(run_dir, 2000)
+    args[args.index("pretrain") + 1:args.index("pretrain") + 1] = ["--preset", "code"]
+    assert main(args) == 0
+    config = json.loads((run_dir / "config.json").read_text())
+    assert config["fb"]["backward_input"] == "code_exact" and config["exploration"]["alpha"] == 50.0
+    assert config["exploration"]["rnd_input"] == "obs" and config["finetune"]["qf_coef"] == 50.0
+    assert main(["zeroshot", str(run_dir), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE]) == 0
+    result = json.loads((run_dir / "zeroshot" / "point_mass_maze_reach_top_left.json").read_text())
+    assert len(result["z"]) == 16
