@@ -125,8 +125,13 @@ def available_snapshots(run: RunDir) -> list[int]:
 
 
 def open_pretrained_run(run_path: str | Path) -> tuple[RunDir, PretrainConfig]:
+    """Open a pre-training run and apply its ``torch_threads`` (acting is batch-1 forward passes,
+    which slow down badly when OpenMP threads compete for busy cores)."""
     run = RunDir.open(run_path)
-    return run, run.load_config(PretrainConfig)
+    config = run.load_config(PretrainConfig)
+    if config.torch_threads > 0:
+        torch.set_num_threads(config.torch_threads)
+    return run, config
 
 
 def load_pretrained_agent(run: RunDir, config: PretrainConfig, snapshot: int | None = None,
