@@ -195,7 +195,8 @@ def _plot(path: Path, positions: np.ndarray, coords: Coordinates, dt: float, sum
         ax.grid(alpha=0.3)
     if skills <= 10:
         axes[0].legend(fontsize=7, ncol=2)
-    fig.suptitle(f"{summary['agent']} on {summary['domain']}: {skills} skills x {repeats} runs, "
-                 f"{summary['actions']} actions; coverage {summary['coverage_cells']} cells of "
-                 f"{summary['cell_size']:g}")
+    # Two short lines: one long line is wider than a single-panel figure and gets clipped.
+    fig.suptitle(f"{summary['agent']} on {summary['domain']}: {skills} skills x {repeats} runs "
+                 f"({summary['actions']} actions)\ncoverage {summary['coverage_cells']} cells of "
+                 f"{summary['cell_size']:g}", fontsize=10)
     fig.savefig(path)
