@@ -37,7 +37,8 @@ gl-deps:
 	fi
 
 bench: $(STAMP)
-	$(PY) bench/run.py
+	$(PY) bench/env_throughput.py
+	$(PY) bench/preset_update_ms.py
 
 clean:
 	rm -rf $(VENV) runs
