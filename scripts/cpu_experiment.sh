@@ -33,3 +33,14 @@ for domain in point_mass_maze walker; do
     "$DVFB" zeroshot "$run" --task all --overwrite
   done
 done
+
+# Fine-tuning (algorithm.md §9) of both walker agents on walker_walk, with the small preset's
+# fine-tuning defaults (20k frames, an evaluation of 5 episodes every 5k frames).
+if [ "${FINETUNE:-1}" = 1 ]; then
+  for agent in dvfb fb; do
+    run="$OUT/${agent}_walker_s0"
+    if [ ! -f "$run/finetune/walker_walk/finetune_summary.json" ]; then
+      "$DVFB" finetune "$run" --task walker_walk --no-progress --overwrite
+    fi
+  done
+fi
