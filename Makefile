@@ -37,8 +37,7 @@ gl-deps:
 	fi
 
 bench: $(STAMP)
-	$(PY) bench/env_throughput.py
-	$(PY) bench/preset_update_ms.py
+	$(PY) bench/run.py
 
 clean:
 	rm -rf $(VENV) runs

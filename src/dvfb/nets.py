@@ -33,6 +33,17 @@ NORM_FLOOR = 1e-12
 # Initialisation and targets
 
 
+def full_precision(x: torch.Tensor) -> torch.Tensor:
+    """``x`` as float32 if it is in a 16-bit float format (autocast output), else ``x`` itself."""
+    return x.float() if x.dtype in (torch.bfloat16, torch.float16) else x
+
+
+def call_network(net: nn.Module, *inputs: torch.Tensor) -> torch.Tensor:
+    """``net(*inputs)``: the default way of calling a network where a caller may pass another
+    (e.g. an agent's :class:`~dvfb.agents.perf.NetRunner`, for precision and compilation)."""
+    return net(*inputs)
+
+
 def orthogonal_init_(module: nn.Module) -> nn.Module:
     """Orthogonal weights with gain 1 and zero biases for every layer (§3.2).
 
@@ -97,7 +108,9 @@ def mlp(*dims: int, first_layer_lnt: bool = False, output_activation: nn.Module 
             continue
         layers.append(nn.Linear(d_in, d_out))
         if not last:
-            layers.append(nn.ReLU())
+            # In place: a Linear's backward does not need its output, so this saves one
+            # activation-sized allocation and write per layer at no change in the math.
+            layers.append(nn.ReLU(inplace=True))
     if output_activation is not None:
         layers.append(output_activation)
     return nn.Sequential(*layers)
@@ -134,7 +147,7 @@ class TwinHead(nn.Module):
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         n = h.shape[0]
-        hidden = F_nn.relu(self.first(h))  # (N, K*H)
+        hidden = F_nn.relu(self.first(h), inplace=True)  # (N, K*H); in place: see mlp()
         hidden = hidden.view(n, self.num_heads, self.hidden_dim).transpose(0, 1)  # (K, N, H)
         return torch.baddbmm(self.second_bias, hidden, self.second_weight)
 
@@ -188,9 +201,9 @@ class TwoStreamEncoder(nn.Module):
     def __init__(self, first_dim: int, second_dim: int, hidden_dim: int, feature_dim: int):
         super().__init__()
         self.first = nn.Sequential(*layernorm_tanh_layer(first_dim, hidden_dim),
-                                   nn.Linear(hidden_dim, feature_dim), nn.ReLU())
+                                   nn.Linear(hidden_dim, feature_dim), nn.ReLU(inplace=True))
         self.second = nn.Sequential(*layernorm_tanh_layer(second_dim, hidden_dim),
-                                    nn.Linear(hidden_dim, feature_dim), nn.ReLU())
+                                    nn.Linear(hidden_dim, feature_dim), nn.ReLU(inplace=True))
         self.out_dim = 2 * feature_dim
 
     def forward(self, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
@@ -221,7 +234,7 @@ class Actor(nn.Module):
     def forward(self, obs: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         obs_z = torch.cat([obs, z], dim=-1)
         h = self.encoder(obs, obs_z) if self.encoder is not None else obs_z
-        return torch.tanh(self.head(h))
+        return torch.tanh(full_precision(self.head(h)))  # float32 output under bf16 autocast too
 
 
 class ForwardMap(nn.Module):
@@ -259,7 +272,8 @@ class BackwardMap(nn.Module):
         orthogonal_init_(self)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return project_to_sphere(self.net(x))
+        # The projection is a reduction: float32 even under bf16 autocast.
+        return project_to_sphere(full_precision(self.net(x)))
 
 
 class TwinCritic(nn.Module):
@@ -322,11 +336,13 @@ class ContrastiveEncoders(nn.Module):
         self.skill_net = mlp(skill_dim, hidden_dim, hidden_dim, skill_dim)
         orthogonal_init_(self)
 
-    def key(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+    def key(self, obs: torch.Tensor, next_obs: torch.Tensor, run=None) -> torch.Tensor:
+        """``pred([g(s), g(s')])``; ``run(net, x)``, if given, calls the two networks."""
+        run = run if run is not None else call_network
         # One pass of g over both columns instead of two.
-        both = self.state_net(torch.cat([obs, next_obs], dim=0))
+        both = run(self.state_net, torch.cat([obs, next_obs], dim=0))
         g_obs, g_next = both.chunk(2, dim=0)
-        return self.transition_net(torch.cat([g_obs, g_next], dim=-1))
+        return run(self.transition_net, torch.cat([g_obs, g_next], dim=-1))
 
     def query(self, skill: torch.Tensor) -> torch.Tensor:
         return self.skill_net(skill)

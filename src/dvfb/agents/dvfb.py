@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import torch
 
 from dvfb.agents.fb import FBAgent, FBConfig, adam
+from dvfb.agents.perf import PerfConfig
 from dvfb.agents.intrinsic import (
     CE_AGGREGATES,
     CE_NEIGHBOURS,
@@ -21,7 +22,7 @@ from dvfb.agents.intrinsic import (
     nce_loss,
 )
 from dvfb.config import param
-from dvfb.nets import ContrastiveEncoders, TwinCritic, make_target, soft_update_
+from dvfb.nets import ContrastiveEncoders, TwinCritic, make_target
 from dvfb.replay import Batch
 
 
@@ -53,9 +54,9 @@ class DVFBAgent(FBAgent):
     name = "dvfb"
 
     def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, exploration: ExplorationConfig,
-                 device: str | torch.device = "cpu"):
+                 device: str | torch.device = "cpu", perf: PerfConfig | None = None):
         self.exploration = exploration
-        super().__init__(obs_dim, action_dim, config, device)
+        super().__init__(obs_dim, action_dim, config, device, perf)
 
     def _build_extra(self) -> None:
         c, e = self.config, self.exploration
@@ -73,6 +74,19 @@ class DVFBAgent(FBAgent):
         self.contrastive_optimizer = (adam(self.contrastive.parameters(), c.lr, c.fused_adam)
                                       if self.contrastive is not None else None)
 
+    def target_pairs(self):
+        return super().target_pairs() + [(self.exploration_critic_target, self.exploration_critic)]
+
+    def update_networks(self):
+        nets = super().update_networks() + [self.exploration_critic, self.exploration_critic_target,
+                                            self.rnd.networks.predictor, self.rnd.networks.target]
+        if self.contrastive is not None:
+            nets += [self.contrastive.state_net, self.contrastive.transition_net, self.contrastive.skill_net]
+        return nets
+
+    def _actor_loss_frozen(self):
+        return super()._actor_loss_frozen() + [self.exploration_critic]
+
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         opts = super().optimizers()
         opts.update(critic_optimizer=self.critic_optimizer, rnd_optimizer=self.rnd_optimizer)
@@ -84,29 +98,30 @@ class DVFBAgent(FBAgent):
     def intrinsic_reward(self, batch: Batch, labels: torch.Tensor, metrics: dict) -> torch.Tensor:
         """RND step, NCE step, then ``r_rnd + beta * r_ce`` with the updated modules (§7.2 steps 3-6)."""
         e = self.exploration
+        run = self.net_runner
         rnd_obs = batch.next_obs if e.rnd_input == "next_obs" else batch.obs
-        normed, rnd_target = self.rnd.prepare(rnd_obs)
-        rnd_loss = self.rnd.loss(normed, rnd_target)
+        normed, rnd_target = self.rnd.prepare(rnd_obs, run)
+        rnd_loss = self.rnd.loss(normed, rnd_target, run)
         self.rnd_optimizer.zero_grad(set_to_none=True)
         rnd_loss.backward()
         self.rnd_optimizer.step()
         metrics["rnd_loss"] = rnd_loss.detach()
 
         if self.contrastive is not None:
-            key = self.contrastive.key(batch.obs, batch.next_obs)
-            query = self.contrastive.query(labels)
+            key = self.contrastive.key(batch.obs, batch.next_obs, run)
+            query = run(self.contrastive.skill_net, labels)
             loss = nce_loss(query, key, e.nce_temperature, e.nce_exact_positive)
             self.contrastive_optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.contrastive_optimizer.step()
             metrics["nce_loss"] = loss.detach()
 
-        reward = self.rnd.reward(normed, rnd_target)
+        reward = self.rnd.reward(normed, rnd_target, run)
         metrics["rnd_reward"] = reward.mean()
         if self.contrastive is not None and e.beta != 0:
-            with torch.no_grad():
-                key = self.contrastive.key(batch.obs, batch.next_obs)
-                query = self.contrastive.query(labels)
+            with torch.no_grad():  # the just-updated encoders (§7.2 step 6)
+                key = self.contrastive.key(batch.obs, batch.next_obs, run)
+                query = run(self.contrastive.skill_net, labels)
                 ce = contrastive_entropy_reward(key, query, e.ce_k, e.ce_neighbours, e.ce_aggregate,
                                                 e.ce_temperature)
             metrics["ce_reward"] = ce.mean()
@@ -117,10 +132,11 @@ class DVFBAgent(FBAgent):
     def exploration_critic_loss(self, batch: Batch, z: torch.Tensor, next_action: torch.Tensor,
                                 reward: torch.Tensor) -> torch.Tensor:
         """Twin TD loss of Q_P on the intrinsic reward (§7.7)."""
+        run = self.net_runner
         with torch.no_grad():
-            next_q = self.exploration_critic_target(batch.next_obs, z, next_action).amin(0)  # (N, 1)
+            next_q = run(self.exploration_critic_target, batch.next_obs, z, next_action).amin(0)  # (N, 1)
             target = reward + batch.discount * next_q
-        q = self.exploration_critic(batch.obs, z, batch.action)  # (2, N, 1)
+        q = run(self.exploration_critic, batch.obs, z, batch.action)  # (2, N, 1)
         return (q - target).pow(2).mean(dim=(1, 2)).sum()
 
     def _explore(self, batch, z, next_action, labels, metrics) -> None:
@@ -133,13 +149,10 @@ class DVFBAgent(FBAgent):
 
     def _actor_bonus(self, obs, z, action, skill_value, metrics):
         e = self.exploration
-        exploration_value = self.exploration_critic(obs, z, action).amin(0).squeeze(-1)
+        exploration_value = self.net_runner(self.exploration_critic, obs, z, action).amin(0).squeeze(-1)
         if e.alpha_mode == "adaptive":
             alpha = (2 * skill_value.mean() / exploration_value.mean()).detach()
         else:
             alpha = e.alpha
         metrics["exploration_value"] = exploration_value.detach().mean()
         return alpha * exploration_value
-
-    def _extra_soft_updates(self) -> None:
-        soft_update_(self.exploration_critic_target, self.exploration_critic, self.config.tau)

@@ -8,8 +8,13 @@ and one extra actor term, :meth:`FBAgent._actor_bonus`, that DVFB overrides.
 Performance notes (issue "Performance"): each forward pass is computed once per update and reused
 -- the online B of the batch feeds the FB loss, the auxiliary Q loss, the orthonormality loss and
 (detached) DVFB's contrastive labels; the target-policy next action feeds every TD target; twin
-heads are one batched product. Metrics are returned as device tensors; nothing here calls
-``.item()``.
+heads are one batched product. Metrics are returned as device tensors; nothing in the update path
+synchronises with the host (tests/test_update_equivalence.py checks this, and checks every loss and
+gradient of a full update against a plain reference implementation). The target EMAs are one fused
+call over all target parameters, and the actor loss is built with F (and Q_P) excluded from autograd,
+so its graph holds only the path from the action to the actor. How the networks execute
+(precision, torch.compile) is :mod:`dvfb.agents.perf`'s business: every network call of the update
+goes through :attr:`FBAgent.net_runner`.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from dvfb.agents.perf import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.config import param
 from dvfb.nets import (
     Actor,
@@ -31,7 +37,6 @@ from dvfb.nets import (
     rollout_action,
     sample_z_prior,
     skill_values,
-    soft_update_,
     training_action,
 )
 from dvfb.replay import Batch
@@ -64,7 +69,8 @@ class FBConfig:
     q_loss: bool = param(True, "Add the auxiliary implicit-reward Q loss (D10).")
     q_loss_coef: float = param(0.01, "Weight of the auxiliary Q loss.")
     cov_ridge: float = param(0.0, "Ridge added to Cov(B) before solving Cov x = z (D19).")
-    fused_adam: bool = param(True, "Use torch's fused (single-kernel) Adam where available.")
+    fused_adam: bool = param(True, "Use torch's fused (single-kernel) Adam where available; false = "
+                             "the multi-tensor (foreach) implementation. Same math either way.")
 
 
 def adam(params, lr: float, fused: bool) -> torch.optim.Adam:
@@ -133,7 +139,8 @@ class FBAgent(nn.Module):
 
     name = "fb"
 
-    def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, device: str | torch.device = "cpu"):
+    def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, device: str | torch.device = "cpu",
+                 perf: PerfConfig | None = None):
         super().__init__()
         self.obs_dim, self.action_dim, self.config = obs_dim, action_dim, config
         c = config
@@ -154,6 +161,13 @@ class FBAgent(nn.Module):
             lr=c.lr, fused=c.fused_adam)
         self.actor_optimizer = adam(self.actor.parameters(), c.lr, c.fused_adam)
         self._build_extra_optimizers()
+        # All (target, online) parameter pairs, EMA-updated by one fused call per update (§3.5).
+        pairs = [(t, o) for tm, om in self.target_pairs() for t, o in zip(tm.parameters(), om.parameters())]
+        self._ema_target_params = [t for t, _ in pairs]
+        self._ema_online_params = [o for _, o in pairs]
+        self._actor_frozen_params = [p for m in self._actor_loss_frozen() for p in m.parameters()]
+        self.net_runner = NetRunner(perf, self.device)
+        self.net_runner.compile(self.update_networks())
 
     # Hooks for subclasses -------------------------------------------------------------------
     def _build_extra(self) -> None:
@@ -171,16 +185,28 @@ class FBAgent(nn.Module):
         """Extra per-sample actor objective (DVFB: alpha * Q_P). FB: none."""
         return None
 
-    def _extra_soft_updates(self) -> None:
-        """EMA of additional targets (DVFB: Q_P)."""
+    def target_pairs(self) -> list[tuple[nn.Module, nn.Module]]:
+        """(target, online) networks that follow their online network by EMA after every update."""
+        return [(self.forward_target, self.forward_map), (self.backward_target, self.backward_map)]
+
+    def update_networks(self) -> list[nn.Module]:
+        """Every network the update calls (what ``perf.compile`` compiles)."""
+        return [self.actor, self.forward_map, self.backward_map, self.forward_target, self.backward_target]
+
+    def _actor_loss_frozen(self) -> list[nn.Module]:
+        """Networks the actor loss differentiates through, but only with respect to the action."""
+        return [self.forward_map]
 
     # Acting ------------------------------------------------------------------------------------
     def sample_z(self, n: int = 1) -> torch.Tensor:
         return sample_z_prior(n, self.config.z_dim, self.device)
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def act(self, obs: np.ndarray, z: torch.Tensor, explore: bool) -> np.ndarray:
-        """One action for one observation: a rollout sample if ``explore``, else the mean (§3.3)."""
+        """One action for one observation: a rollout sample if ``explore``, else the mean (§3.3).
+
+        Runs eagerly in float32 whatever ``perf`` says (batch 1: per-op overhead, not FLOPs).
+        """
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
         mean = self.actor(obs_t, z.reshape(1, -1))
         action = rollout_action(mean, self.config.stddev) if explore else mean
@@ -227,7 +253,7 @@ class FBAgent(nn.Module):
             goal_input = torch.cat([batch.obs[perm], batch.next_obs[perm]], dim=-1)
         else:  # code_exact (D1 b): pairs of unrelated states
             goal_input = torch.cat([batch.obs, batch.obs[perm]], dim=-1)
-        goals = project_to_sphere(self.backward_map(goal_input))
+        goals = project_to_sphere(self.net_runner(self.backward_map, goal_input))
         replace = torch.rand(n, 1, device=self.device) < c.mix_ratio
         return torch.where(replace, goals, z)
 
@@ -235,34 +261,40 @@ class FBAgent(nn.Module):
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         """One full pre-training update in the order of §7.2. Returns detached metric tensors."""
         c = self.config
+        run = self.net_runner
         metrics: dict[str, torch.Tensor] = {}
         z = self.training_z(batch)
         with torch.no_grad():
-            next_action = training_action(self.actor(batch.next_obs, z), c.stddev, c.stddev_clip)
+            next_action = training_action(run(self.actor, batch.next_obs, z), c.stddev, c.stddev_clip)
         online_input, target_input = self.backward_inputs(batch)
-        backward = self.backward_map(online_input)  # reused by the FB, Q and ortho losses
+        backward = run(self.backward_map, online_input)  # reused by the FB, Q and ortho losses
         if c.backward_input == "code_exact":
-            labels = self.backward_features(batch.obs, batch.next_obs)
+            with torch.no_grad():
+                labels = run(self.backward_map, self.label_input(batch.obs, batch.next_obs))
         else:
             labels = backward.detach()
         self._explore(batch, z, next_action, labels, metrics)
         self._fb_step(batch, z, next_action, backward, target_input, metrics)
         self._actor_step(batch.obs, z, metrics)
-        soft_update_(self.forward_target, self.forward_map, c.tau)
-        soft_update_(self.backward_target, self.backward_map, c.tau)
-        self._extra_soft_updates()
+        self.soft_update_targets()
         return metrics
+
+    @torch.no_grad()
+    def soft_update_targets(self) -> None:
+        """EMA of every target network (§3.5), one fused call over all their parameters."""
+        torch._foreach_lerp_(self._ema_target_params, self._ema_online_params, self.config.tau)
 
     def fb_losses(self, batch: Batch, z: torch.Tensor, next_action: torch.Tensor,
                   backward: torch.Tensor, target_input: torch.Tensor) -> dict[str, torch.Tensor]:
         """FB loss (§7.8), auxiliary Q loss (§7.9) and orthonormality loss (§7.10)."""
         c = self.config
+        run = self.net_runner
         discount = batch.discount  # (N, 1): scales row i
         with torch.no_grad():
-            target_forward = self.forward_target(batch.next_obs, next_action, z)  # (2, N, d)
-            target_backward = self.backward_target(target_input)  # (N, d)
+            target_forward = run(self.forward_target, batch.next_obs, next_action, z)  # (2, N, d)
+            target_backward = run(self.backward_target, target_input)  # (N, d)
             target_m = torch.matmul(target_forward, target_backward.T).amin(0)  # (N, N)
-        forward = self.forward_map(batch.obs, batch.action, z)  # (2, N, d)
+        forward = run(self.forward_map, batch.obs, batch.action, z)  # (2, N, d)
         m = torch.matmul(forward, backward.T)  # (2, N, N)
         offdiag = offdiag_mean((m - discount * target_m).pow(2))  # (2,)
         diag = m.diagonal(dim1=-2, dim2=-1).mean(-1)  # (2,)
@@ -295,8 +327,9 @@ class FBAgent(nn.Module):
     def actor_loss(self, obs: torch.Tensor, z: torch.Tensor, metrics: dict) -> torch.Tensor:
         """``-mean(Q_M + bonus)`` with ``Q_M = min_k F_k(s, a~, z) . z`` (§7.11)."""
         c = self.config
-        action = training_action(self.actor(obs, z), c.stddev, c.stddev_clip)
-        skill_value = skill_values(self.forward_map(obs, action, z), z).amin(0)
+        run = self.net_runner
+        action = training_action(run(self.actor, obs, z), c.stddev, c.stddev_clip)
+        skill_value = skill_values(run(self.forward_map, obs, action, z), z).amin(0)
         objective = skill_value
         bonus = self._actor_bonus(obs, z, action, skill_value, metrics)
         if bonus is not None:
@@ -305,7 +338,10 @@ class FBAgent(nn.Module):
         return -objective.mean()
 
     def _actor_step(self, obs: torch.Tensor, z: torch.Tensor, metrics: dict) -> None:
-        loss = self.actor_loss(obs, z, metrics)
+        # F (and Q_P) are differentiated only with respect to the action: excluding their
+        # parameters from autograd keeps their weight-only branches out of the graph.
+        with requires_grad_disabled(self._actor_frozen_params):
+            loss = self.actor_loss(obs, z, metrics)
         self.actor_optimizer.zero_grad(set_to_none=True)
         # Only the actor's leaves receive gradients: F and the critics are not touched (§7.11).
         loss.backward(inputs=list(self.actor.parameters()))

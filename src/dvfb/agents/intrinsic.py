@@ -9,12 +9,13 @@
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import torch
 from torch import nn
 from torch.nn import functional as F_nn
 
-from dvfb.nets import RNDNetworks, RunningMeanStd
+from dvfb.nets import RNDNetworks, RunningMeanStd, call_network
 
 CE_NEIGHBOURS = ("least_similar", "most_similar")
 CE_AGGREGATES = ("log_of_mean", "mean_of_log")
@@ -69,19 +70,22 @@ class RNDReward(nn.Module):
     def predictor_parameters(self):
         return self.networks.predictor.parameters()
 
-    def prepare(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Normalised input and the frozen target's output: computed once, used twice."""
+    def prepare(self, obs: torch.Tensor, run: Callable = call_network) -> tuple[torch.Tensor, torch.Tensor]:
+        """Normalised input and the frozen target's output: computed once, used twice.
+
+        ``run(net, x)`` calls a network (the agent passes its :class:`~dvfb.agents.perf.NetRunner`).
+        """
         normed = self.networks.normalise(obs)
         with torch.no_grad():
-            target = self.networks.target(normed)
+            target = run(self.networks.target, normed)
         return normed, target
 
-    def loss(self, normed: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return RNDNetworks.error(self.networks.predictor(normed), target).mean()
+    def loss(self, normed: torch.Tensor, target: torch.Tensor, run: Callable = call_network) -> torch.Tensor:
+        return RNDNetworks.error(run(self.networks.predictor, normed), target).mean()
 
     @torch.no_grad()
-    def reward(self, normed: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def reward(self, normed: torch.Tensor, target: torch.Tensor, run: Callable = call_network) -> torch.Tensor:
         """``e(x) / (sqrt(S_rnd) + 1e-8)`` after folding this batch into the statistics. ``(N, 1)``."""
-        error = RNDNetworks.error(self.networks.predictor(normed), target)
+        error = RNDNetworks.error(run(self.networks.predictor, normed), target)
         _mean, var = self.error_stats.update(error)
         return (error / (var.sqrt().to(error.dtype) + 1e-8)).unsqueeze(-1)

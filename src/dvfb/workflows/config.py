@@ -2,7 +2,8 @@
 
 One :class:`PretrainConfig` describes a pre-training run completely and is saved as
 ``config.json`` in its run directory. It nests the agent's :class:`FBConfig`, DVFB's
-:class:`ExplorationConfig`, and the defaults of the later phases (:class:`InferenceConfig`,
+:class:`ExplorationConfig`, the execution options of the updates (:class:`PerfConfig`: precision,
+compilation), and the defaults of the later phases (:class:`InferenceConfig`,
 :class:`FinetuneConfig`) so that zero-shot and fine-tuning of a run use the preset it was trained
 with unless told otherwise.
 
@@ -25,6 +26,7 @@ from dvfb.agents import AGENTS
 from dvfb.agents.dvfb import ExplorationConfig
 from dvfb.agents.fb import FBConfig
 from dvfb.agents.finetune import FinetuneConfig
+from dvfb.agents.perf import PerfConfig
 from dvfb.config import merge, param, replace
 from dvfb.errors import ConfigError
 
@@ -68,6 +70,8 @@ class PretrainConfig:
                                            metadata={"help": "DVFB exploration (ignored by fb)."})
     inference: InferenceConfig = field(default_factory=InferenceConfig, metadata={"help": "Zero-shot."})
     finetune: FinetuneConfig = field(default_factory=FinetuneConfig, metadata={"help": "Fine-tuning."})
+    perf: PerfConfig = field(default_factory=PerfConfig,
+                             metadata={"help": "How the pre-training updates execute (precision, compilation)."})
 
 
 def preset_config(preset: str, **top_level) -> PretrainConfig:

@@ -47,10 +47,15 @@ log = logging.getLogger(__name__)
 RESUME_KIND = "pretrain_resume"
 # Fields that may change between a run and its resumption without changing what is computed.
 RESUMABLE_CHANGES = ("frames", "device", "torch_threads", "log_every")
+# perf options that only change how the same operations execute (perf.precision changes numerics).
+RESUMABLE_PERF_CHANGES = ("compile", "cuda_graphs")
 
 
 def _check_resume_config(stored: PretrainConfig, requested: PretrainConfig) -> None:
     a, b = to_dict(stored), to_dict(requested)
+    for d in (a, b):
+        for k in RESUMABLE_PERF_CHANGES:
+            d["perf"].pop(k, None)
     diffs = sorted(k for k in a if k not in RESUMABLE_CHANGES and a[k] != b[k])
     if diffs:
         raise ConfigError(f"--resume with a different configuration: {', '.join(diffs)} differ from the "
@@ -73,7 +78,7 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
     env = envs.make(config.domain, seed=config.seed, reward_free=True)
     obs_dim = env.observation_space.shape[0]
     action_dim = env.action_space.shape[0]
-    agent = make_agent(config.agent, obs_dim, action_dim, config.fb, config.exploration, device)
+    agent = make_agent(config.agent, obs_dim, action_dim, config.fb, config.exploration, device, config.perf)
     replay = ReplayBuffer(config.replay_capacity, obs_dim, action_dim, config.fb.z_dim,
                           max_episode_length=envs.TASKS[envs.pretrain_task(config.domain)].episode_length,
                           device=device)
@@ -104,7 +109,7 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
     started = time.time()
     start_step = step
     episode_return, episode_start = 0.0, True
-    obs = z = None
+    obs = z = z_host = None
 
     def save_resume() -> None:
         save_checkpoint(run, {
@@ -118,10 +123,12 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
                 obs, _ = env.reset(seed=config.seed) if first_reset else env.reset()
                 first_reset = False
                 z = agent.sample_z(1)[0]
+                z_host = z.cpu().numpy()  # what the replay stores; converted once per new z
                 replay.start_episode(obs)
                 episode_return, episode_start = 0.0, False
             if step % config.update_z_every == 0:
                 z = agent.sample_z(1)[0]
+                z_host = z.cpu().numpy()
             if step < config.seed_frames:
                 action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
             else:
@@ -132,7 +139,7 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
             check_action(action, step, window)
             obs, _, terminated, truncated, info = env.step(action)
             task_reward = info["task_reward"]
-            replay.add(action, task_reward, 0.0 if terminated else 1.0, obs, z.cpu().numpy())
+            replay.add(action, task_reward, 0.0 if terminated else 1.0, obs, z_host)
             episode_return += task_reward
             step += 1
             bar.update(1)

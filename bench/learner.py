@@ -1,0 +1,666 @@
+"""Learner, collector and end-to-end throughput of dvfb, with FLOPs and the machine's matmul peak.
+
+Sections (``--only`` picks a subset; all run by default):
+
+* ``peak``      -- this machine's matrix-multiply peak, measured in the same run: the best of a few
+  square products (2048^3 on CPU, 8192^3 on CUDA) in fp32 and bf16. Every GFLOP/s figure below is
+  also given as a fraction of this fp32 (or, for bf16 rows, bf16) peak. Always measured.
+* ``learner``   -- ms per ``agent.update(batch)`` for DVFB and FB at the ``paper`` preset (H=1024,
+  N=1024), the ``small`` preset and the "hidden 256" configuration (see CONFIGS), in fp32 and bf16
+  (``--precisions``); FLOPs of one real update counted with ``torch.utils.flop_counter``; achieved
+  GFLOP/s; the replay sampling time (not included in ms/update); peak memory (see MEMORY below).
+  ``--compile`` adds torch.compile rows for the small preset, with the compile time.
+* ``scaling``   -- ms/update of DVFB over a grid of hidden widths x batch sizes (paper widths
+  otherwise, see CONFIGS); ``--scaling-hidden`` / ``--scaling-batch`` limit the grid.
+* ``collector`` -- environment steps/s of the pre-training loop without updates, against raw
+  dm_control stepping in the same process, in alternating chunks (as bench/env_throughput.py):
+  ``seed phase`` = uniform actions + dvfb env step + replay add; ``acting`` = ``agent.act`` (actor
+  forward + rollout noise) + dvfb env step + replay add, for the small and paper actors. Both
+  replicate the loop body of dvfb.workflows.pretrain (z resampling and its host copy, non-finite
+  action check, episode resets) minus the update. Also: microseconds per ``agent.act``.
+* ``e2e``       -- frames/s of ``python -m dvfb pretrain`` at the small preset (default 6000 frames
+  of which 2000 seed frames), as a subprocess into a temporary run directory: the run's own
+  figure over all frames (process start-up excluded), and the steady-state rate of the training
+  phase from its fps logged every 500 frames.
+
+MEMORY. CPU: each configuration runs in a fresh subprocess (so no earlier allocation is reused),
+which reports its resident set size (RSS) just before the first update and the peak RSS (Linux
+VmHWM, reset through /proc/self/clear_refs just before the first update) during the warm-up and
+two further updates. ``peak RSS`` is the whole process (torch runtime, replay buffer, networks,
+optimiser states, autograd buffers); ``update +`` is the peak minus the RSS before the first
+update: what the updates add (Adam states created at the first step, gradients, activations,
+temporaries, allocator slack). ``state MB`` is computed exactly from the tensors: parameters of
+all networks (targets included) plus Adam's two moments. CUDA: ``torch.cuda.max_memory_allocated``
+during the updates (the caching allocator's live tensors), same columns.
+
+Usage: python bench/learner.py [--quick] [--only learner,scaling,collector,e2e] [--threads N]
+       [--device auto|cpu|cuda] [--precisions fp32,bf16] [--compile] [--output PATH]
+Writes bench/results/learner.json (``--output``). ``python bench/run.py`` (``make bench``) runs this,
+bench/env_throughput.py and bench/preset_update_ms.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import importlib.metadata
+import json
+import os
+import platform
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+# isort: off
+import dvfb.envs as envs  # before dm_control: sets the headless MUJOCO_GL default
+# isort: on
+
+import numpy as np
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from dvfb.agents import make_agent
+from dvfb.agents.dvfb import ExplorationConfig
+from dvfb.agents.fb import FBConfig
+from dvfb.agents.perf import PerfConfig, bf16_matmul_is_fast
+from dvfb.config import merge
+from dvfb.replay import ReplayBuffer
+from dvfb.workflows.common import MetricWindow, check_action
+from dvfb.workflows.config import preset_config
+
+HERE = Path(__file__).resolve().parent
+RESULTS_PATH = HERE / "results" / "learner.json"
+SECTIONS = ("learner", "scaling", "collector", "e2e")
+
+# The configurations of the learner rows. "hidden256" is the authors' "hidden 256" setting: the
+# paper configuration with every width the paper sets to H = 1024 (actor, F, critics, RND and the
+# contrastive encoders) set to 256 and the batch to 256, while the widths the paper fixes
+# independently of H stay: feature E = 512, B hidden Hb = 526, RND output 512.
+CONFIGS = {
+    "paper": ("paper", {}),
+    "small": ("small", {}),
+    "hidden256": ("paper", {"fb": {"hidden_dim": 256, "batch_size": 256},
+                            "exploration": {"contrastive_hidden_dim": 256}}),
+}
+CONFIG_NOTES = {
+    "paper": "preset paper: H=1024, E=512, Hb=526, N=1024, contrastive H=1024, RND out 512",
+    "small": "preset small: H=256, E=128, Hb=256, N=256, contrastive H=256, RND out 128",
+    "hidden256": "paper widths with H=256 and N=256: E=512, Hb=526, contrastive H=256, RND out 512",
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# Helpers
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def model_configs(name: str, overrides: dict | None = None) -> tuple[FBConfig, ExplorationConfig]:
+    preset, changes = CONFIGS[name]
+    config = preset_config(preset)
+    config = merge(config, changes) if changes else config
+    if overrides:
+        config = merge(config, overrides)
+    return config.fb, config.exploration
+
+
+def scaling_configs(hidden: int, batch: int) -> tuple[FBConfig, ExplorationConfig]:
+    """Paper widths with H = ``hidden`` wherever the paper uses H, and batch ``batch``."""
+    config = merge(preset_config("paper"), {"fb": {"hidden_dim": hidden, "batch_size": batch},
+                                            "exploration": {"contrastive_hidden_dim": hidden}})
+    return config.fb, config.exploration
+
+
+def env_dims(domain: str) -> tuple[int, int]:
+    env = envs.make(envs.pretrain_task(domain), seed=0)
+    return env.observation_space.shape[0], env.action_space.shape[0]
+
+
+def filled_replay(obs_dim: int, action_dim: int, z_dim: int, device: torch.device, steps: int = 10_000,
+                  episode_length: int = 1000, seed: int = 0) -> ReplayBuffer:
+    """A buffer of ``steps`` random transitions (the learner's cost does not depend on the values)."""
+    replay = ReplayBuffer(max(steps, episode_length), obs_dim, action_dim, z_dim,
+                          max_episode_length=episode_length, device=device)
+    rng = np.random.default_rng(seed)
+    obs = rng.standard_normal((steps + 1, obs_dim)).astype(np.float32)
+    actions = rng.uniform(-1, 1, (steps, action_dim)).astype(np.float32)
+    zs = rng.standard_normal((steps, z_dim)).astype(np.float32)
+    for t in range(steps):
+        if t % episode_length == 0:
+            replay.start_episode(obs[t])
+        replay.add(actions[t], 0.0, 1.0, obs[t + 1], zs[t])
+    return replay
+
+
+def build(agent_name: str, fb: FBConfig, exploration: ExplorationConfig, perf: PerfConfig,
+          device: torch.device, obs_dim: int, action_dim: int, seed: int = 0):
+    torch.manual_seed(seed)
+    agent = make_agent(agent_name, obs_dim, action_dim, fb, exploration, device, perf)
+    return agent, filled_replay(obs_dim, action_dim, fb.z_dim, device)
+
+
+def state_bytes(agent) -> int:
+    """Parameters of every network (targets included) plus Adam's moments, from the tensors."""
+    total = sum(p.numel() * p.element_size() for p in agent.parameters())
+    for opt in agent.optimizers().values():
+        for state in opt.state.values():
+            total += sum(v.numel() * v.element_size() for v in state.values()
+                         if torch.is_tensor(v) and v.dim() > 0)
+    return total
+
+
+def time_updates(agent, replay: ReplayBuffer, warmup: int, repeats: int, device: torch.device) -> dict:
+    """Median / min ms per update and per replay sample, over ``repeats`` timed updates."""
+    c = agent.config
+    need_future = c.backward_input == "code_exact"
+    for _ in range(warmup):
+        agent.update(replay.sample(c.batch_size, c.discount, need_future=need_future))
+    sync(device)
+    update_s, sample_s = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        batch = replay.sample(c.batch_size, c.discount, need_future=need_future)
+        sync(device)
+        t1 = time.perf_counter()
+        agent.update(batch)
+        sync(device)
+        t2 = time.perf_counter()
+        sample_s.append(t1 - t0)
+        update_s.append(t2 - t1)
+    return {"ms_per_update": 1e3 * statistics.median(update_s), "ms_per_update_min": 1e3 * min(update_s),
+            "ms_per_update_runs": [1e3 * s for s in update_s],
+            "ms_per_sample": 1e3 * statistics.median(sample_s)}
+
+
+def count_flops(agent, replay: ReplayBuffer) -> int:
+    c = agent.config
+    batch = replay.sample(c.batch_size, c.discount, need_future=c.backward_input == "code_exact")
+    with FlopCounterMode(display=False) as counter:
+        agent.update(batch)
+    return int(counter.get_total_flops())
+
+
+# ---------------------------------------------------------------------------------------------
+# Peak
+
+
+def matmul_peak(device: torch.device, dtype: torch.dtype, quick: bool) -> dict:
+    n = 8192 if device.type == "cuda" else 2048
+    a = torch.randn(n, n, device=device).to(dtype)
+    b = torch.randn(n, n, device=device).to(dtype)
+    out = torch.empty(n, n, device=device, dtype=dtype)
+    torch.mm(a, b, out=out)
+    sync(device)
+    best = float("inf")
+    for _ in range(3 if quick else 5):
+        reps = 3
+        start = time.perf_counter()
+        for _ in range(reps):
+            torch.mm(a, b, out=out)
+        sync(device)
+        best = min(best, (time.perf_counter() - start) / reps)
+    return {"n": n, "dtype": str(dtype).replace("torch.", ""), "gflops": 2 * n ** 3 / best / 1e9,
+            "statistic": "best of repeated runs"}
+
+
+# ---------------------------------------------------------------------------------------------
+# Memory (fresh subprocess per configuration)
+
+
+def _rss_kb(field: str) -> int:
+    status = Path("/proc/self/status").read_text()
+    return int(re.search(rf"{field}:\s+(\d+)", status).group(1))
+
+
+def memory_probe(spec: dict) -> dict:
+    """Run in a fresh process: build, then measure RSS (or CUDA memory) over three updates."""
+    device = torch.device(spec["device"])
+    torch.set_num_threads(spec["threads"])
+    fb = FBConfig(**spec["fb"])
+    exploration = ExplorationConfig(**spec["exploration"])
+    perf = PerfConfig(**spec["perf"])
+    agent, replay = build(spec["agent"], fb, exploration, perf, device, spec["obs_dim"], spec["action_dim"])
+    need_future = fb.backward_input == "code_exact"
+    result: dict = {}
+    if device.type == "cuda":
+        sync(device)
+        before = torch.cuda.memory_allocated(device)
+        torch.cuda.reset_peak_memory_stats(device)
+    else:
+        before = _rss_kb("VmRSS") * 1024
+        try:
+            Path("/proc/self/clear_refs").write_text("5")  # reset VmHWM to the current RSS
+            result["method"] = "VmHWM after /proc/self/clear_refs reset"
+        except OSError:
+            result["method"] = "ru_maxrss (not resettable: includes set-up)"
+    for _ in range(3):
+        agent.update(replay.sample(fb.batch_size, fb.discount, need_future=need_future))
+    sync(device)
+    if device.type == "cuda":
+        peak = torch.cuda.max_memory_allocated(device)
+        result["method"] = "torch.cuda.max_memory_allocated"
+    elif result["method"].startswith("VmHWM"):
+        peak = _rss_kb("VmHWM") * 1024
+    else:
+        import resource
+
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    result.update(before_first_update_mb=before / 2 ** 20, peak_mb=peak / 2 ** 20,
+                  update_added_mb=(peak - before) / 2 ** 20, state_mb=state_bytes(agent) / 2 ** 20)
+    return result
+
+
+def measure_memory(agent_name, fb, exploration, perf, device, threads, obs_dim, action_dim) -> dict:
+    spec = {"agent": agent_name, "fb": dataclasses.asdict(fb), "exploration": dataclasses.asdict(exploration),
+            "perf": dataclasses.asdict(perf), "device": str(device), "threads": threads,
+            "obs_dim": obs_dim, "action_dim": action_dim}
+    proc = subprocess.run([sys.executable, __file__, "--memory-probe", json.dumps(spec)],
+                          capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed"}
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+# ---------------------------------------------------------------------------------------------
+# Learner and scaling
+
+
+def learner_row(agent_name, config_name, fb, exploration, perf, device, args, obs_dim, action_dim,
+                peaks, memory: bool) -> dict:
+    heavy = fb.hidden_dim * fb.batch_size >= 1024 * 1024
+    warmup, repeats = (1, 2) if args.quick and heavy else (1, 3) if heavy else (2, 5) if args.quick else (3, 10)
+    start = time.perf_counter()
+    agent, replay = build(agent_name, fb, exploration, perf, device, obs_dim, action_dim)
+    compile_s = None
+    if perf.compile or perf.cuda_graphs:
+        t0 = time.perf_counter()
+        agent.update(replay.sample(fb.batch_size, fb.discount))  # compiles
+        sync(device)
+        compile_s = time.perf_counter() - t0
+    timing = time_updates(agent, replay, warmup, repeats, device)
+    flops = count_flops(agent, replay)
+    threads = torch.get_num_threads()
+    dtype_peak = peaks[(device.type, "bfloat16" if perf.precision == "bf16" else "float32", threads)]
+    fp32_peak = peaks[(device.type, "float32", threads)]
+    gflops = flops / (timing["ms_per_update"] * 1e-3) / 1e9
+    row = {
+        "section": "learner", "agent": agent_name, "config": config_name, "device": str(device),
+        "threads": torch.get_num_threads(),
+        "precision": perf.precision, "compile": perf.compile, "cuda_graphs": perf.cuda_graphs,
+        "hidden_dim": fb.hidden_dim, "feature_dim": fb.feature_dim, "backward_hidden_dim": fb.backward_hidden_dim,
+        "batch_size": fb.batch_size, "contrastive_hidden_dim": exploration.contrastive_hidden_dim,
+        "rnd_rep_dim": exploration.rnd_rep_dim, "warmup": warmup, "repeats": repeats,
+        **timing, "gflop_per_update": flops / 1e9, "gflops": gflops,
+        "fraction_of_fp32_peak": gflops / fp32_peak, "fraction_of_dtype_peak": gflops / dtype_peak,
+        "compile_s": compile_s, "compiled": agent.net_runner.compiled if compile_s is not None else None,
+        "state_mb": state_bytes(agent) / 2 ** 20,
+    }
+    del agent, replay
+    if memory:
+        row["memory"] = measure_memory(agent_name, fb, exploration, perf, device, torch.get_num_threads(),
+                                       obs_dim, action_dim)
+    row["wall_s"] = time.perf_counter() - start
+    return row
+
+
+def run_learner(args, devices, peaks, obs_dim, action_dim) -> list[dict]:
+    rows = []
+    precisions = [p for p in args.precisions.split(",") if p]
+    for device in devices:
+        for config_name in args.configs.split(","):
+            for precision in precisions:
+                for agent_name in args.agents.split(","):
+                    for threads in args.thread_counts:
+                        torch.set_num_threads(threads)
+                        fb, exploration = model_configs(config_name)
+                        perf = PerfConfig(precision=precision)
+                        row = learner_row(agent_name, config_name, fb, exploration, perf, device, args, obs_dim,
+                                          action_dim, peaks, memory=not args.no_memory)
+                        rows.append(row)
+                        print_progress(row)
+        torch.set_num_threads(args.thread_counts[0])
+        if args.compile:
+            for agent_name in args.agents.split(","):
+                fb, exploration = model_configs("small")
+                perf = PerfConfig(compile=True, cuda_graphs=device.type == "cuda" and args.cuda_graphs)
+                row = learner_row(agent_name, "small", fb, exploration, perf, device, args, obs_dim, action_dim,
+                                  peaks, memory=False)
+                rows.append(row)
+                print_progress(row)
+    return rows
+
+
+def run_scaling(args, devices, peaks, obs_dim, action_dim) -> list[dict]:
+    rows = []
+    hidden = [int(x) for x in args.scaling_hidden.split(",") if x]
+    batches = [int(x) for x in args.scaling_batch.split(",") if x]
+    for device in devices:
+        for h in hidden:
+            for n in batches:
+                fb, exploration = scaling_configs(h, n)
+                row = learner_row("dvfb", f"H{h}_N{n}", fb, exploration, PerfConfig(), device, args, obs_dim,
+                                  action_dim, peaks, memory=False)
+                row["section"] = "scaling"
+                rows.append(row)
+                print_progress(row)
+    return rows
+
+
+def print_progress(row: dict) -> None:
+    print(f"  {row['section']} {row['agent']} {row['config']} {row['precision']} {row['threads']} threads"
+          f"{' compiled' if row.get('compile') else ''} on {row['device']}: {row['ms_per_update']:.1f} ms/update, "
+          f"{row['gflops']:.1f} GFLOP/s ({100 * row['fraction_of_fp32_peak']:.0f}% of fp32 peak)", file=sys.stderr)
+
+
+# ---------------------------------------------------------------------------------------------
+# Collector
+
+
+def collector_runner(env, agent, replay: ReplayBuffer, action_dim: int, seed_phase: bool, seed: int,
+                     update_z_every: int = 300):
+    """The loop body of dvfb.workflows.pretrain without the update, as a function of n steps."""
+    rng = np.random.default_rng(seed)
+    window = MetricWindow()
+    state = {"obs": None, "z": None, "z_host": None, "start": True, "step": 0}
+
+    def run(n_steps: int) -> None:
+        obs, z, z_host, start, step = state["obs"], state["z"], state["z_host"], state["start"], state["step"]
+        for _ in range(n_steps):
+            if start:
+                obs, _ = env.reset()
+                z = agent.sample_z(1)[0]
+                z_host = z.cpu().numpy()
+                replay.start_episode(obs)
+                start = False
+            if step % update_z_every == 0:
+                z = agent.sample_z(1)[0]
+                z_host = z.cpu().numpy()
+            if seed_phase:
+                action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
+            else:
+                action = agent.act(obs, z, explore=True)
+            check_action(action, step, window)
+            obs, _, terminated, truncated, info = env.step(action)
+            replay.add(action, info["task_reward"], 0.0 if terminated else 1.0, obs, z_host)
+            step += 1
+            if terminated or truncated:
+                start = True
+        state.update(obs=obs, z=z, z_host=z_host, start=start, step=step)
+
+    return run
+
+
+def run_collector(args, device) -> dict:
+    sys.path.insert(0, str(HERE))
+    import env_throughput  # noqa: E402  (bench/env_throughput.py)
+
+    task = args.collector_task
+    domain = envs.TASKS[task].domain
+    obs_dim, action_dim = env_dims(domain)
+    seconds = 1.0 if args.quick else 3.0
+    repeats = 2 if args.quick else 3
+
+    raw_env, raw_source = env_throughput.build_raw(task, 0)
+    raw_env.reset()
+    rng = np.random.default_rng(0)
+    raw_actions = np.ascontiguousarray(rng.uniform(-1.0, 1.0, (4096, action_dim)))
+    runners = {"raw dm_control": env_throughput.raw_runner(raw_env, raw_actions)}
+    act_us = {}
+    for name, preset in (("small", "small"), ("paper", "paper")):
+        fb, exploration = model_configs(preset)
+        torch.manual_seed(0)
+        agent = make_agent("dvfb", obs_dim, action_dim, fb, exploration, device)
+        if name == "small":
+            replay = ReplayBuffer(100_000, obs_dim, action_dim, fb.z_dim,
+                                  max_episode_length=envs.TASKS[task].episode_length, device=device)
+            runners["seed phase (uniform action + env + replay)"] = collector_runner(
+                envs.make(task, seed=0), agent, replay, action_dim, True, 0)
+        replay = ReplayBuffer(100_000, obs_dim, action_dim, fb.z_dim,
+                              max_episode_length=envs.TASKS[task].episode_length, device=device)
+        runners[f"acting, {name} actor (act + env + replay)"] = collector_runner(
+            envs.make(task, seed=0), agent, replay, action_dim, False, 0)
+        obs = np.zeros(obs_dim, np.float32)
+        z = agent.sample_z(1)[0]
+        for _ in range(50):
+            agent.act(obs, z, explore=True)
+        reps = 300 if args.quick else 1000
+        start = time.perf_counter()
+        for _ in range(reps):
+            agent.act(obs, z, explore=True)
+        act_us[name] = 1e6 * (time.perf_counter() - start) / reps
+
+    for run in runners.values():  # warm-up, and size the chunks from the raw speed
+        run(200)
+    start = time.perf_counter()
+    runners["raw dm_control"](500)
+    raw_rate = 500 / (time.perf_counter() - start)
+    chunk = max(50, round(0.1 * raw_rate))
+    total = max(1, round(seconds * raw_rate / chunk)) * chunk
+    rates: dict[str, list[float]] = {k: [] for k in runners}
+    for _ in range(repeats):
+        for name, rate in env_throughput.matched_rates(runners, total, chunk).items():
+            rates[name].append(rate)
+    raw = statistics.median(rates["raw dm_control"])
+    rows = [{"path": name, "steps_per_s": statistics.median(r), "ratio_to_raw": statistics.median(r) / raw,
+             "runs": r} for name, r in rates.items()]
+    return {"task": task, "raw_source": raw_source, "steps_per_repeat": total, "repeats": repeats,
+            "device": str(device), "rows": rows, "act_us": act_us,
+            "note": "raw dm_control is stepped with uniform random actions; the acting rows follow the "
+                    "policy's trajectory, so physics cost can differ slightly between rows"}
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end
+
+
+def run_e2e(args, device) -> dict:
+    frames, seed_frames = args.e2e_frames, args.e2e_seed_frames
+    with tempfile.TemporaryDirectory() as tmp:
+        run_dir = Path(tmp) / "run"
+        cmd = [sys.executable, "-m", "dvfb", "pretrain", "--agent", args.e2e_agent, "--domain", args.e2e_domain,
+               "--preset", "small", "--frames", str(frames), "--seed-frames", str(seed_frames),
+               "--run-dir", str(run_dir), "--no-progress", "--log-every", "500",
+               "--torch-threads", str(torch.get_num_threads()), "--device", device.type]
+        start = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        wall = time.perf_counter() - start
+        if proc.returncode != 0:
+            return {"error": proc.stderr.strip()[-2000:], "command": " ".join(cmd)}
+        summary = json.loads((run_dir / "pretrain_summary.json").read_text())
+        lines = [json.loads(x) for x in (run_dir / "metrics" / "train.jsonl").read_text().splitlines()]
+    # train.jsonl's fps is cumulative since the start: t(step) = step / fps(step).
+    times = {r["step"]: r["step"] / r["fps"] for r in lines if "fps" in r}
+    steady = None
+    logged = sorted(times)
+    if len(logged) >= 2:
+        first, last = logged[0], logged[-1]
+        steady = (last - first) / (times[last] - times[first])
+    updates = max(0, (frames - seed_frames + 1) // 2)
+    return {"agent": args.e2e_agent, "domain": args.e2e_domain, "preset": "small", "frames": frames,
+            "seed_frames": seed_frames, "updates": updates, "device": str(device),
+            "frames_per_s": summary["frames_per_s"], "wall_clock_s_run": summary["wall_clock_s"],
+            "wall_clock_s_process": wall, "training_phase_frames_per_s": steady,
+            "training_phase_window": [logged[0], logged[-1]] if len(logged) >= 2 else None,
+            "command": " ".join(cmd)}
+
+
+# ---------------------------------------------------------------------------------------------
+# Output
+
+
+def table(rows: list[dict], columns) -> str:
+    header = "| " + " | ".join(f"{t:{a}}" for t, _, a, _ in columns) + " |"
+    widths = [len(f"{t:{a}}") for t, _, a, _ in columns]
+    lines = [header, "|" + "|".join("-" * (w + 2) for w in widths) + "|"]
+    for r in rows:
+        cells = []
+        for _, key, align, fmt in columns:
+            value = key(r) if callable(key) else r.get(key)
+            cells.append(f"{'-' if value is None else fmt.format(value):{align}}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def mem(key):
+    return lambda r: r.get("memory", {}).get(key)
+
+
+LEARNER_COLUMNS = (
+    ("agent", "agent", "<5", "{}"), ("config", "config", "<10", "{}"), ("dev", "device", "<4", "{}"),
+    ("thr", "threads", ">3", "{}"),
+    ("prec", lambda r: r["precision"] + ("+compile" if r.get("compile") else ""), "<13", "{}"),
+    ("H", "hidden_dim", ">4", "{}"), ("E", "feature_dim", ">3", "{}"), ("Hb", "backward_hidden_dim", ">3", "{}"),
+    ("N", "batch_size", ">4", "{}"),
+    ("ms/update", "ms_per_update", ">9", "{:.1f}"), ("min ms", "ms_per_update_min", ">7", "{:.1f}"),
+    ("sample ms", "ms_per_sample", ">9", "{:.2f}"), ("GFLOP", "gflop_per_update", ">7", "{:.2f}"),
+    ("GFLOP/s", "gflops", ">7", "{:.1f}"), ("% fp32 peak", lambda r: 100 * r["fraction_of_fp32_peak"], ">11", "{:.0f}"),
+    ("% dtype peak", lambda r: 100 * r["fraction_of_dtype_peak"], ">12", "{:.0f}"),
+    ("state MB", "state_mb", ">8", "{:.0f}"), ("peak MB", mem("peak_mb"), ">7", "{:.0f}"),
+    ("update + MB", mem("update_added_mb"), ">11", "{:.0f}"), ("compile s", "compile_s", ">9", "{:.0f}"),
+)
+SCALING_COLUMNS = (
+    ("H", "hidden_dim", ">4", "{}"), ("N", "batch_size", ">4", "{}"), ("dev", "device", "<4", "{}"),
+    ("ms/update", "ms_per_update", ">9", "{:.1f}"), ("GFLOP", "gflop_per_update", ">7", "{:.2f}"),
+    ("GFLOP/s", "gflops", ">7", "{:.1f}"), ("% fp32 peak", lambda r: 100 * r["fraction_of_fp32_peak"], ">11", "{:.0f}"),
+)
+COLLECTOR_COLUMNS = (("path", "path", "<48", "{}"), ("steps/s", "steps_per_s", ">8", "{:,.0f}"),
+                     ("ratio to raw", "ratio_to_raw", ">12", "{:.3f}"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--only", default=",".join(SECTIONS), help="comma-separated sections: " + ", ".join(SECTIONS))
+    parser.add_argument("--quick", action="store_true", help="fewer repetitions, a 2x2 scaling grid, shorter e2e")
+    parser.add_argument("--threads", default=None,
+                        help="torch threads (default: torch's default); a comma list (e.g. 1,2) repeats every "
+                             "learner row per thread count, the other sections use the first")
+    parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
+                        help="auto: CPU rows, plus CUDA rows when torch sees a GPU")
+    parser.add_argument("--domain", default="walker", help="domain whose observation/action sizes the learner uses")
+    parser.add_argument("--agents", default="dvfb,fb")
+    parser.add_argument("--configs", default="paper,small,hidden256", help="learner configurations: " + ", ".join(CONFIGS))
+    parser.add_argument("--precisions", default="fp32,bf16", help="learner precisions (fp32, bf16)")
+    parser.add_argument("--compile", action="store_true", help="add torch.compile rows (small preset; slow to compile)")
+    parser.add_argument("--cuda-graphs", action="store_true", help="with --compile on CUDA: CUDA-graph rows")
+    parser.add_argument("--no-memory", action="store_true", help="skip the memory subprocesses")
+    parser.add_argument("--scaling-hidden", default=None, help="hidden widths of the scaling grid (default 256,512,1024)")
+    parser.add_argument("--scaling-batch", default=None, help="batch sizes of the scaling grid (default 256,512,1024,2048)")
+    parser.add_argument("--collector-task", default="walker_walk")
+    parser.add_argument("--e2e-agent", default="dvfb")
+    parser.add_argument("--e2e-domain", default="walker")
+    parser.add_argument("--e2e-frames", type=int, default=None, help="default 6000 (--quick: 3000); the "
+                        "training-phase rate needs two logs (every 500 frames) after the seed frames")
+    parser.add_argument("--e2e-seed-frames", type=int, default=2000)
+    parser.add_argument("--output", type=Path, default=RESULTS_PATH, help="JSON output path")
+    parser.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+
+    if args.memory_probe is not None:
+        print(json.dumps(memory_probe(json.loads(args.memory_probe))))
+        return 0
+
+    sections = [s.strip() for s in args.only.split(",") if s.strip()]
+    unknown = sorted(set(sections) - set(SECTIONS))
+    if unknown:
+        parser.error(f"unknown section(s) {unknown}; choose from {', '.join(SECTIONS)}")
+    for name in args.configs.split(","):
+        if name not in CONFIGS:
+            parser.error(f"unknown config {name!r}; choose from {', '.join(CONFIGS)}")
+    try:
+        args.thread_counts = [int(t) for t in args.threads.split(",")] if args.threads else [torch.get_num_threads()]
+    except ValueError:
+        parser.error(f"--threads expects integers, got {args.threads!r}")
+    if min(args.thread_counts) < 1:
+        parser.error("--threads must be >= 1")
+    torch.set_num_threads(args.thread_counts[0])
+    if args.scaling_hidden is None:
+        args.scaling_hidden = "256,1024" if args.quick else "256,512,1024"
+    if args.scaling_batch is None:
+        args.scaling_batch = "256,1024" if args.quick else "256,512,1024,2048"
+    if args.e2e_frames is None:
+        args.e2e_frames = 3000 if args.quick else 6000  # logs every 500 frames after the seed frames
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: torch sees no CUDA device")
+    devices = [torch.device("cpu")] if args.device in ("auto", "cpu") else []
+    if args.device in ("auto", "cuda") and torch.cuda.is_available():
+        devices.append(torch.device("cuda"))
+
+    print(f"threads {args.thread_counts}, devices {[str(d) for d in devices]}, sections {sections}",
+          file=sys.stderr)
+    peaks, peak_rows = {}, []
+    for threads in args.thread_counts:  # the matmul peak with every thread count the rows use
+        torch.set_num_threads(threads)
+        for device in devices:
+            for dtype in (torch.float32, torch.bfloat16):
+                peak = matmul_peak(device, dtype, args.quick)
+                peak.update(device=str(device), threads=threads)
+                peaks[(device.type, str(dtype).replace("torch.", ""), threads)] = peak["gflops"]
+                peak_rows.append(peak)
+                print(f"  peak {device} {peak['dtype']} {peak['n']}^3 matmul, {threads} threads: "
+                      f"{peak['gflops']:.1f} GFLOP/s", file=sys.stderr)
+    torch.set_num_threads(args.thread_counts[0])
+
+    obs_dim, action_dim = env_dims(args.domain)
+    report: dict = {
+        "benchmark": "learner",
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "memory_probe"},
+        "threads": args.thread_counts,
+        "obs_dim": obs_dim, "action_dim": action_dim, "config_notes": CONFIG_NOTES,
+        "machine": {"platform": platform.platform(), "python": platform.python_version(),
+                    "cpu_count": os.cpu_count(), "torch": torch.__version__,
+                    "bf16_matmul_hardware": {str(d): bf16_matmul_is_fast(d) for d in devices},
+                    "cuda_device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None},
+        "versions": {n: importlib.metadata.version(n) for n in ("torch", "numpy", "dm_control", "mujoco")},
+        "peak": peak_rows,
+    }
+    out = []
+    if "learner" in sections:
+        report["learner"] = run_learner(args, devices, peaks, obs_dim, action_dim)
+        out += ["## Learner (ms per agent.update; sample ms = replay.sample, not included)",
+                table(report["learner"], LEARNER_COLUMNS), ""]
+        out += [f"- {k}: {v}" for k, v in CONFIG_NOTES.items()] + [""]
+    if "scaling" in sections:
+        report["scaling"] = run_scaling(args, devices, peaks, obs_dim, action_dim)
+        out += ["## Scaling (DVFB, fp32; paper widths with H wherever the paper uses 1024)",
+                table(report["scaling"], SCALING_COLUMNS), ""]
+    if "collector" in sections:
+        report["collector"] = run_collector(args, devices[0])
+        c = report["collector"]
+        out += [f"## Collector ({c['task']}, {c['device']}; pre-training loop body without updates)",
+                table(c["rows"], COLLECTOR_COLUMNS),
+                "agent.act: " + ", ".join(f"{k} actor {v:.0f} us" for k, v in c["act_us"].items()), ""]
+    if "e2e" in sections:
+        report["e2e"] = run_e2e(args, devices[0])
+        e = report["e2e"]
+        if "error" in e:
+            out += ["## End to end: FAILED", e["error"], ""]
+        else:
+            steady = e["training_phase_frames_per_s"]
+            out += [f"## End to end (dvfb pretrain, {e['agent']} {e['domain']} small, {e['frames']} frames, "
+                    f"{e['seed_frames']} seed frames, {e['updates']} updates)",
+                    f"frames/s over the run: {e['frames_per_s']:.1f}; training phase (steps "
+                    f"{e['training_phase_window']}): {steady:.1f} frames/s" if steady else
+                    f"frames/s over the run: {e['frames_per_s']:.1f}", ""]
+    peak_line = "; ".join(f"{p['device']} {p['dtype']} {p['threads']} thr: {p['gflops']:.1f} GFLOP/s"
+                          for p in peak_rows)
+    print(f"# dvfb learner benchmark (threads {args.thread_counts}; peak and sections other than the "
+          f"learner with {args.thread_counts[0]})\nmatmul peak: {peak_line}\n")
+    print("\n".join(out))
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
