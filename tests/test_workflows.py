@@ -214,3 +214,22 @@ def test_code_preset_runs_end_to_end(tmp_path: Path):
     assert main(["zeroshot", str(run_dir), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE]) == 0
     result = json.loads((run_dir / "zeroshot" / "point_mass_maze_reach_top_left.json").read_text())
     assert len(result["z"]) == 16
+
+
+def test_finetune_resume_continues_as_if_uninterrupted(pretrained: Path):
+    common = ["--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "--finetune.seed-frames", "400",
+              "--finetune.eval-every", "1000", "--finetune.eval-episodes", "1", "--finetune.checkpoint-every", "1000",
+              "--no-progress"]
+    assert main(["finetune", str(pretrained), "--name", "full", "--finetune.frames", "2000", *common]) == 0
+    assert main(["finetune", str(pretrained), "--name", "split", "--finetune.frames", "1000", *common]) == 0
+    assert main(["finetune", str(pretrained), "--name", "split", "--finetune.frames", "2000", "--resume", *common]) == 0
+    full = json.loads((pretrained / "finetune" / "full" / "curve.json").read_text())
+    split = json.loads((pretrained / "finetune" / "split" / "curve.json").read_text())
+    assert [p["frames"] for p in split["curve"]] == [0, 1000, 2000]
+    assert full["curve"] == split["curve"]
+    a = load_checkpoint(pretrained / "finetune" / "full")["finetuner"]
+    b = load_checkpoint(pretrained / "finetune" / "split")["finetuner"]
+    for part in ("actor", "finetuner"):
+        assert a[part].keys() == b[part].keys()
+        for key in a[part]:
+            assert torch.equal(a[part][key], b[part][key]), (part, key)
