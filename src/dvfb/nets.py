@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import copy
 import math
-from typing import Iterable
 
 import torch
 from torch import nn
@@ -378,8 +377,3 @@ class RunningMeanStd(nn.Module):
         self.var.copy_((self.var * n + batch_var * b + delta.pow(2) * n * b / total) / total)
         self.count.add_(b)
         return self.mean, self.var
-
-
-def parameters_of(*modules: nn.Module) -> Iterable[nn.Parameter]:
-    for m in modules:
-        yield from m.parameters()

@@ -393,12 +393,3 @@ class FBAgent(nn.Module):
         self.load_state_dict(state["modules"])
         for k, o in self.optimizers().items():
             o.load_state_dict(state["optimizers"][k])
-
-
-def metric_floats(metrics: dict[str, torch.Tensor]) -> dict[str, float]:
-    """One host sync for a whole dict of 0-d metric tensors."""
-    if not metrics:
-        return {}
-    keys = list(metrics)
-    values = torch.stack([metrics[k].detach().float().reshape(()) for k in keys]).cpu().tolist()
-    return dict(zip(keys, values))

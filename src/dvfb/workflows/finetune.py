@@ -125,6 +125,7 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     _write_curve(ft_run, run_config, curve, inference_info, z)
 
     window = MetricWindow()
+    z_host = z.cpu().numpy()  # z_r is fixed: the replay's copy is made once, not every step
     bar = progress_bar(cfg.frames, step, f"finetune {task}", progress)
     last_checkpoint = step
     episode_start = True
@@ -139,7 +140,7 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
             window.add(step, finetuner.update(replay.sample(agent.config.batch_size, agent.config.discount)))
         check_action(action, step, window)
         obs, reward, terminated, truncated, _ = env.step(action)
-        replay.add(action, reward, 0.0 if terminated else 1.0, obs, z.cpu().numpy())
+        replay.add(action, reward, 0.0 if terminated else 1.0, obs, z_host)
         step += 1
         bar.update(1)
         if step % 1000 == 0 or step == cfg.frames:
