@@ -16,6 +16,7 @@ from dvfb.nets import (
     BackwardMap,
     ContrastiveEncoders,
     ForwardMap,
+    HostActor,
     RNDNetworks,
     RunningMeanStd,
     TwinCritic,
@@ -281,10 +282,86 @@ def test_mean_action_is_deterministic_and_rollout_is_stochastic():
     assert np.array_equal(a1, a2)
     with torch.no_grad():
         mu = agent.actor(torch.as_tensor(obs)[None], z[None])[0].numpy()
-    assert np.array_equal(a1, mu)
+    np.testing.assert_allclose(a1, mu, rtol=0, atol=1e-6)  # numpy acting path vs the torch module
     e1, e2 = agent.act(obs, z, explore=True), agent.act(obs, z, explore=True)
     assert not np.array_equal(e1, e2)
     assert np.all(np.abs(e1) <= 1 - ACTION_EPS)
+
+
+# ---------------------------------------------------------------------------------------------
+# HostActor: the numpy acting path
+
+
+def _actor_inputs(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return (rng.standard_normal((n, OBS)).astype(np.float32) * 3,
+            rng.standard_normal((n, D)).astype(np.float32))
+
+
+@pytest.mark.parametrize("arch", ["two_stream", "mlp"])
+def test_host_actor_equals_the_torch_actor(arch):
+    torch.manual_seed(0)
+    actor = Actor(OBS, D, ACT, H, E, arch)
+    obs, z = _actor_inputs(20)
+    with torch.no_grad():
+        expected = actor(torch.as_tensor(obs), torch.as_tensor(z)).numpy()
+    host = HostActor(actor)
+    got = np.stack([host(o, zz) for o, zz in zip(obs, z)])
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, expected, rtol=0, atol=2e-6)
+    assert np.abs(got).max() > 0.05  # a real function of the input, not a constant
+
+
+def test_host_actor_follows_optimiser_steps_and_loaded_weights():
+    torch.manual_seed(0)
+    actor = Actor(OBS, D, ACT, H, E)
+    host = HostActor(actor)
+    obs, z = _actor_inputs(4)
+    before = host(obs[0], z[0]).copy()
+    optimizer = torch.optim.Adam(actor.parameters(), lr=1e-2, fused=True)
+    for _ in range(3):
+        optimizer.zero_grad()
+        actor(torch.as_tensor(obs), torch.as_tensor(z)).sum().backward()
+        optimizer.step()
+    after = host(obs[0], z[0])
+    with torch.no_grad():
+        expected = actor(torch.as_tensor(obs[:1]), torch.as_tensor(z[:1]))[0].numpy()
+    assert not np.allclose(after, before)
+    np.testing.assert_allclose(after, expected, rtol=0, atol=2e-6)
+    other = Actor(OBS, D, ACT, H, E)
+    actor.load_state_dict(other.state_dict())
+    with torch.no_grad():
+        expected = other(torch.as_tensor(obs[:1]), torch.as_tensor(z[:1]))[0].numpy()
+    np.testing.assert_allclose(host(obs[0], z[0]), expected, rtol=0, atol=2e-6)
+
+
+def test_host_actor_rebinds_when_a_parameter_storage_is_replaced():
+    torch.manual_seed(0)
+    actor = Actor(OBS, D, ACT, H, E)
+    host = HostActor(actor)
+    obs, z = _actor_inputs(1)
+    host(obs[0], z[0])
+    head_out = actor.head[-1]
+    head_out.bias.data = head_out.bias.data + 0.5  # a new tensor, not an in-place write
+    with torch.no_grad():
+        expected = actor(torch.as_tensor(obs), torch.as_tensor(z))[0].numpy()
+    np.testing.assert_allclose(host(obs[0], z[0]), expected, rtol=0, atol=2e-6)
+
+
+def test_host_actor_rejects_non_float32_actors():
+    with pytest.raises(ValueError, match="float32 actor on the CPU"):
+        HostActor(Actor(OBS, D, ACT, H, E).double())
+
+
+def test_act_noise_comes_from_torch_generator_like_the_torch_path():
+    agent = FBAgent(OBS, ACT, tiny_config())
+    obs, z = _actor_inputs(1)
+    z_t = torch.as_tensor(z[0])
+    torch.manual_seed(123)
+    host_actions = [agent.act(obs[0], z_t, explore=True) for _ in range(3)]
+    torch.manual_seed(123)
+    torch_actions = [agent._act_torch(obs[0], z_t, explore=True) for _ in range(3)]
+    np.testing.assert_allclose(np.stack(host_actions), np.stack(torch_actions), rtol=0, atol=2e-6)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -18,6 +18,7 @@ from __future__ import annotations
 import copy
 import math
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F_nn
@@ -234,6 +235,93 @@ class Actor(nn.Module):
         obs_z = torch.cat([obs, z], dim=-1)
         h = self.encoder(obs, obs_z) if self.encoder is not None else obs_z
         return torch.tanh(full_precision(self.head(h)))  # float32 output under bf16 autocast too
+
+
+class HostActor:
+    """The mean ``mu(s, z)`` of a CPU :class:`Actor` for one observation, evaluated with numpy.
+
+    Acting needs one actor forward per environment step at batch 1, where torch's per-module and
+    per-operator dispatch costs several times the arithmetic (algorithm.md §7.1 acts every step).
+    This evaluator runs the same layers as plain numpy calls on zero-copy views of the actor's
+    parameters: optimiser steps and ``load_state_dict`` write those tensors in place, so the views
+    always see the current weights, and the result equals ``Actor.forward`` up to float32 rounding
+    (tests/test_nets.py). If a parameter's storage is ever replaced (``.to()``, ``.data = ...``),
+    the views are rebuilt on the next call. CPU float32 only.
+    """
+
+    def __init__(self, actor: Actor):
+        self.actor = actor
+        self._params = list(actor.parameters())
+        if any(p.device.type != "cpu" or p.dtype != torch.float32 for p in self._params):
+            raise ValueError("HostActor needs a float32 actor on the CPU")
+        self._storage: tuple[int, ...] = ()
+        self._bind()
+
+    def _bind(self) -> None:
+        actor = self.actor
+        if actor.encoder is not None:
+            self._streams = (_host_layers(actor.encoder.first), _host_layers(actor.encoder.second))
+        else:
+            self._streams = None
+        self._head = _host_layers(actor.head)
+        self._storage = self._storage_key()
+
+    def _storage_key(self) -> tuple[int, ...]:
+        return tuple(p.data_ptr() for p in self._params)
+
+    def __call__(self, obs: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """``tanh(head(...))`` for a single ``obs`` (O,) and ``z`` (d,): the action mean (U,)."""
+        if self._storage != self._storage_key():
+            self._bind()
+        obs = np.asarray(obs, dtype=np.float32)
+        obs_z = np.concatenate([obs, np.asarray(z, dtype=np.float32)])
+        if self._streams is None:
+            h = _run_host_layers(self._head, obs_z)
+        else:
+            first, second = self._streams
+            h = np.concatenate([_run_host_layers(first, obs), _run_host_layers(second, obs_z)])
+            h = _run_host_layers(self._head, h)
+        return np.tanh(h, out=h)
+
+
+def _host_layers(seq: nn.Sequential) -> list[tuple]:
+    """(kind, numpy views...) per layer of an MLP built from Linear/LayerNorm/Tanh/ReLU."""
+    layers: list[tuple] = []
+    for module in seq:
+        if isinstance(module, nn.Linear):
+            # weight.T is a transposed view; BLAS reads it without a copy.
+            layers.append(("linear", module.weight.detach().numpy().T, module.bias.detach().numpy()))
+        elif isinstance(module, nn.LayerNorm):
+            (width,) = module.normalized_shape
+            layers.append(("layer_norm", module.weight.detach().numpy(), module.bias.detach().numpy(),
+                           float(module.eps), np.float32(1.0 / width)))
+        elif isinstance(module, nn.Tanh):
+            layers.append(("tanh",))
+        elif isinstance(module, nn.ReLU):
+            layers.append(("relu",))
+        else:
+            raise TypeError(f"HostActor cannot evaluate a {type(module).__name__} layer")
+    return layers
+
+
+def _run_host_layers(layers: list[tuple], x: np.ndarray) -> np.ndarray:
+    for layer in layers:
+        kind = layer[0]
+        if kind == "linear":
+            x = x @ layer[1]
+            x += layer[2]
+        elif kind == "layer_norm":
+            # Scalars stay Python/numpy scalars: each array call costs ~1 us at this size.
+            x -= x.sum() * layer[4]
+            var = float(np.dot(x, x) * layer[4])  # biased variance, as nn.LayerNorm
+            x *= np.float32(1.0 / math.sqrt(var + layer[3]))
+            x *= layer[1]
+            x += layer[2]
+        elif kind == "tanh":
+            np.tanh(x, out=x)
+        else:
+            np.maximum(x, 0.0, out=x)
+    return x
 
 
 class ForwardMap(nn.Module):
