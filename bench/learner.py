@@ -187,6 +187,29 @@ def time_updates(agent, replay: ReplayBuffer, warmup: int, repeats: int, device:
             "ms_per_sample": 1e3 * statistics.median(sample_s)}
 
 
+MATMUL_OPS = ("aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm")
+
+
+def matmul_breakdown(agent, replay: ReplayBuffer, updates: int, device: torch.device) -> dict | None:
+    """Per update under torch.profiler (CPU only): the wall time, and the self time of the matrix
+    products (the operations the FLOP count covers). The rest of the update (element-wise work,
+    optimiser, autograd and Python) is the difference. The profiler adds a little overhead."""
+    if device.type != "cpu":
+        return None
+    from torch.profiler import ProfilerActivity, profile
+
+    c = agent.config
+    batches = [replay.sample(c.batch_size, c.discount, need_future=c.backward_input == "code_exact")
+               for _ in range(updates)]
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        start = time.perf_counter()
+        for batch in batches:
+            agent.update(batch)
+        wall = time.perf_counter() - start
+    matmul_us = sum(e.self_cpu_time_total for e in prof.key_averages() if e.key in MATMUL_OPS)
+    return {"profiled_ms_per_update": 1e3 * wall / updates, "matmul_ms_per_update": matmul_us / 1e3 / updates}
+
+
 def count_flops(agent, replay: ReplayBuffer) -> int:
     c = agent.config
     batch = replay.sample(c.batch_size, c.discount, need_future=c.backward_input == "code_exact")
@@ -294,6 +317,7 @@ def learner_row(agent_name, config_name, fb, exploration, perf, device, args, ob
         compile_s = time.perf_counter() - t0
     timing = time_updates(agent, replay, warmup, repeats, device)
     flops = count_flops(agent, replay)
+    breakdown = matmul_breakdown(agent, replay, 1 if heavy else 3, device)
     threads = torch.get_num_threads()
     dtype_peak = peaks[(device.type, "bfloat16" if perf.precision == "bf16" else "float32", threads)]
     fp32_peak = peaks[(device.type, "float32", threads)]
@@ -310,6 +334,10 @@ def learner_row(agent_name, config_name, fb, exploration, perf, device, args, ob
         "compile_s": compile_s, "compiled": agent.net_runner.compiled if compile_s is not None else None,
         "state_mb": state_bytes(agent) / 2 ** 20,
     }
+    if breakdown is not None:
+        row.update(breakdown)
+        row["matmul_gflops"] = flops / (breakdown["matmul_ms_per_update"] * 1e-3) / 1e9
+        row["matmul_share"] = breakdown["matmul_ms_per_update"] / breakdown["profiled_ms_per_update"]
     del agent, replay
     if memory:
         row["memory"] = measure_memory(agent_name, fb, exploration, perf, device, torch.get_num_threads(),
@@ -545,6 +573,8 @@ LEARNER_COLUMNS = (
     ("sample ms", "ms_per_sample", ">9", "{:.2f}"), ("GFLOP", "gflop_per_update", ">7", "{:.2f}"),
     ("GFLOP/s", "gflops", ">7", "{:.1f}"), ("% fp32 peak", lambda r: 100 * r["fraction_of_fp32_peak"], ">11", "{:.0f}"),
     ("% dtype peak", lambda r: 100 * r["fraction_of_dtype_peak"], ">12", "{:.0f}"),
+    ("mm ms", "matmul_ms_per_update", ">6", "{:.1f}"), ("mm GFLOP/s", "matmul_gflops", ">10", "{:.1f}"),
+    ("mm share", lambda r: 100 * r["matmul_share"] if "matmul_share" in r else None, ">8", "{:.0f}%"),
     ("state MB", "state_mb", ">8", "{:.0f}"), ("peak MB", mem("peak_mb"), ">7", "{:.0f}"),
     ("update + MB", mem("update_added_mb"), ">11", "{:.0f}"), ("compile s", "compile_s", ">9", "{:.0f}"),
 )
