@@ -9,27 +9,20 @@ import pytest
 import torch
 from torch.nn import functional as F_nn
 
-from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig
+from dvfb.agents.dvfb import DVFBAgent
 from dvfb.agents.fb import BACKWARD_INPUTS, FBAgent, FBConfig
 from dvfb.agents.intrinsic import RNDReward, contrastive_entropy_reward, nce_loss
 from dvfb.nets import sample_z_prior, training_action
 from dvfb.replay import Batch
+from tiny import ACT, D, H, OBS, tiny_exploration
+from tiny import tiny_config as shared_tiny_config
 
 
-OBS, ACT, D, H, E = 5, 3, 8, 32, 16
 TAU = 0.01
 
 
 def tiny_config(**overrides) -> FBConfig:
-    kw = dict(z_dim=D, hidden_dim=H, feature_dim=E, backward_hidden_dim=H, batch_size=32, tau=TAU)
-    kw.update(overrides)
-    return FBConfig(**kw)
-
-
-def tiny_exploration(**overrides) -> ExplorationConfig:
-    kw = dict(rnd_rep_dim=16, contrastive_hidden_dim=32, ce_k=4)
-    kw.update(overrides)
-    return ExplorationConfig(**kw)
+    return shared_tiny_config(**{"tau": TAU, **overrides})
 
 
 def make_batch(n: int, seed: int = 0, future: bool = True) -> Batch:

@@ -14,33 +14,20 @@ import math
 import pytest
 import torch
 
-from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig
+from dvfb.agents.dvfb import DVFBAgent
 from dvfb.agents.fb import (
     BACKWARD_INPUTS,
     FBAgent,
-    FBConfig,
     implicit_reward,
     infer_z_from_rewards,
     offdiag_mean,
 )
 from dvfb.nets import project_to_sphere, sample_z_prior, skill_values, training_action
 from dvfb.replay import Batch
+from tiny import ACT, D, OBS, tiny_config, tiny_exploration
 
 
-OBS, ACT, D, H, E = 5, 3, 8, 32, 16
 F64 = torch.float64
-
-
-def tiny_config(**overrides) -> FBConfig:
-    kw = dict(z_dim=D, hidden_dim=H, feature_dim=E, backward_hidden_dim=H, batch_size=32)
-    kw.update(overrides)
-    return FBConfig(**kw)
-
-
-def tiny_exploration(**overrides) -> ExplorationConfig:
-    kw = dict(rnd_rep_dim=16, contrastive_hidden_dim=32, ce_k=4)
-    kw.update(overrides)
-    return ExplorationConfig(**kw)
 
 
 def make_batch(n: int, seed: int = 0, discount=None) -> Batch:

@@ -9,7 +9,7 @@ import torch
 from scipy import stats
 from torch import nn
 
-from dvfb.agents.fb import BACKWARD_INPUTS, FBAgent, FBConfig
+from dvfb.agents.fb import BACKWARD_INPUTS, FBAgent
 from dvfb.nets import (
     ACTION_EPS,
     Actor,
@@ -31,15 +31,9 @@ from dvfb.nets import (
     training_action,
 )
 from dvfb.replay import Batch
+from tiny import ACT, D, E, H, OBS, tiny_config
 
 
-OBS, ACT, D, H, E = 5, 3, 8, 32, 16
-
-
-def tiny_config(**overrides) -> FBConfig:
-    kw = dict(z_dim=D, hidden_dim=H, feature_dim=E, backward_hidden_dim=H, batch_size=32)
-    kw.update(overrides)
-    return FBConfig(**kw)
 
 
 def make_batch(n: int, seed: int = 0, obs_dim: int = OBS, action_dim: int = ACT) -> Batch:
