@@ -222,7 +222,7 @@ def count_flops(agent, replay: ReplayBuffer) -> int:
 # Peak
 
 
-def matmul_peak(device: torch.device, dtype: torch.dtype, quick: bool) -> dict:
+def matmul_peak(device: torch.device, dtype: torch.dtype, quick: bool, rounds: int | None = None) -> dict:
     n = 8192 if device.type == "cuda" else 2048
     a = torch.randn(n, n, device=device).to(dtype)
     b = torch.randn(n, n, device=device).to(dtype)
@@ -230,7 +230,7 @@ def matmul_peak(device: torch.device, dtype: torch.dtype, quick: bool) -> dict:
     torch.mm(a, b, out=out)
     sync(device)
     best = float("inf")
-    for _ in range(3 if quick else 5):
+    for _ in range(rounds or (3 if quick else 5)):
         reps = 3
         start = time.perf_counter()
         for _ in range(reps):
@@ -304,10 +304,14 @@ def measure_memory(agent_name, fb, exploration, perf, device, threads, obs_dim, 
 
 
 def learner_row(agent_name, config_name, fb, exploration, perf, device, args, obs_dim, action_dim,
-                peaks, memory: bool) -> dict:
+                peaks, memory: bool, breakdown: bool = True) -> dict:
     heavy = fb.hidden_dim * fb.batch_size >= 1024 * 1024
     warmup, repeats = (1, 2) if args.quick and heavy else (1, 3) if heavy else (2, 5) if args.quick else (3, 10)
     start = time.perf_counter()
+    # The peak right before and after the row's timing: on a shared (virtual) machine the matmul
+    # speed drifts by tens of percent within minutes, so the row is compared with its own moment.
+    dtypes = (torch.float32, torch.bfloat16) if perf.precision == "bf16" else (torch.float32,)
+    local_peaks = {d: [matmul_peak(device, d, True, rounds=2)["gflops"]] for d in dtypes}
     agent, replay = build(agent_name, fb, exploration, perf, device, obs_dim, action_dim)
     compile_s = None
     if perf.compile or perf.cuda_graphs:
@@ -316,11 +320,14 @@ def learner_row(agent_name, config_name, fb, exploration, perf, device, args, ob
         sync(device)
         compile_s = time.perf_counter() - t0
     timing = time_updates(agent, replay, warmup, repeats, device)
+    for d in dtypes:
+        local_peaks[d].append(matmul_peak(device, d, True, rounds=2)["gflops"])
     flops = count_flops(agent, replay)
-    breakdown = matmul_breakdown(agent, replay, 1 if heavy else 3, device)
+    breakdown = matmul_breakdown(agent, replay, 1 if heavy else 3, device) if breakdown else None
     threads = torch.get_num_threads()
-    dtype_peak = peaks[(device.type, "bfloat16" if perf.precision == "bf16" else "float32", threads)]
-    fp32_peak = peaks[(device.type, "float32", threads)]
+    fp32_peak = max(local_peaks[torch.float32])
+    dtype_peak = max(local_peaks[torch.bfloat16]) if perf.precision == "bf16" else fp32_peak
+    run_fp32_peak = peaks[(device.type, "float32", threads)]
     gflops = flops / (timing["ms_per_update"] * 1e-3) / 1e9
     row = {
         "section": "learner", "agent": agent_name, "config": config_name, "device": str(device),
@@ -331,6 +338,9 @@ def learner_row(agent_name, config_name, fb, exploration, perf, device, args, ob
         "rnd_rep_dim": exploration.rnd_rep_dim, "warmup": warmup, "repeats": repeats,
         **timing, "gflop_per_update": flops / 1e9, "gflops": gflops,
         "fraction_of_fp32_peak": gflops / fp32_peak, "fraction_of_dtype_peak": gflops / dtype_peak,
+        "fp32_peak_local_gflops": fp32_peak, "dtype_peak_local_gflops": dtype_peak,
+        "local_peak_runs": {str(d).replace("torch.", ""): v for d, v in local_peaks.items()},
+        "fraction_of_run_start_fp32_peak": gflops / run_fp32_peak,
         "compile_s": compile_s, "compiled": agent.net_runner.compiled if compile_s is not None else None,
         "state_mb": state_bytes(agent) / 2 ** 20,
     }
@@ -347,30 +357,56 @@ def learner_row(agent_name, config_name, fb, exploration, perf, device, args, ob
 
 
 def run_learner(args, devices, peaks, obs_dim, action_dim) -> list[dict]:
-    rows = []
+    """Every learner row, ``--rounds`` times round-robin (see :func:`merge_rounds`)."""
+    specs = []
     precisions = [p for p in args.precisions.split(",") if p]
     for device in devices:
         for config_name in args.configs.split(","):
             for precision in precisions:
                 for agent_name in args.agents.split(","):
                     for threads in args.thread_counts:
-                        torch.set_num_threads(threads)
-                        fb, exploration = model_configs(config_name)
-                        perf = PerfConfig(precision=precision)
-                        row = learner_row(agent_name, config_name, fb, exploration, perf, device, args, obs_dim,
-                                          action_dim, peaks, memory=not args.no_memory)
-                        rows.append(row)
-                        print_progress(row)
-        torch.set_num_threads(args.thread_counts[0])
+                        specs.append((device, config_name, PerfConfig(precision=precision), agent_name, threads))
         if args.compile:
-            for agent_name in args.agents.split(","):
-                fb, exploration = model_configs("small")
-                perf = PerfConfig(compile=True, cuda_graphs=device.type == "cuda" and args.cuda_graphs)
-                row = learner_row(agent_name, "small", fb, exploration, perf, device, args, obs_dim, action_dim,
-                                  peaks, memory=False)
-                rows.append(row)
-                print_progress(row)
-    return rows
+            for config_name in args.compile_configs.split(","):
+                for agent_name in args.agents.split(","):
+                    perf = PerfConfig(compile=True, cuda_graphs=device.type == "cuda" and args.cuda_graphs)
+                    specs.append((device, config_name, perf, agent_name, args.thread_counts[0]))
+    rounds: dict[int, list[dict]] = {i: [] for i in range(len(specs))}
+    for r in range(args.rounds):
+        for i, (device, config_name, perf, agent_name, threads) in enumerate(specs):
+            if r > 0 and perf.compile:
+                continue  # compiled rows: one round (each round recompiles from scratch)
+            torch.set_num_threads(threads)
+            fb, exploration = model_configs(config_name)
+            row = learner_row(agent_name, config_name, fb, exploration, perf, device, args, obs_dim, action_dim,
+                              peaks, memory=r == 0 and not args.no_memory and not perf.compile,
+                              breakdown=r == 0)
+            rounds[i].append(row)
+            print_progress(row)
+    torch.set_num_threads(args.thread_counts[0])
+    return [merge_rounds(rows) for rows in rounds.values()]
+
+
+def merge_rounds(rows: list[dict]) -> dict:
+    """One row from the rounds of a configuration: median over rounds of each round's median
+    ms/update, the fastest update of any round, and the median of the per-round fractions of the
+    local peak. The memory and profiler columns come from the first round."""
+    row = dict(rows[0])
+    row["rounds"] = len(rows)
+    if len(rows) == 1:
+        return row
+    row["ms_per_update"] = statistics.median(r["ms_per_update"] for r in rows)
+    row["ms_per_update_min"] = min(r["ms_per_update_min"] for r in rows)
+    row["ms_per_sample"] = statistics.median(r["ms_per_sample"] for r in rows)
+    row["ms_per_update_rounds"] = [r["ms_per_update"] for r in rows]
+    row["ms_per_update_runs"] = [t for r in rows for t in r["ms_per_update_runs"]]
+    row["gflops"] = row["gflop_per_update"] / (row["ms_per_update"] * 1e-3)
+    for key in ("fraction_of_fp32_peak", "fraction_of_dtype_peak", "fp32_peak_local_gflops",
+                "dtype_peak_local_gflops", "fraction_of_run_start_fp32_peak"):
+        row[key] = statistics.median(r[key] for r in rows)
+    row["local_peak_runs"] = [r["local_peak_runs"] for r in rows]
+    row["wall_s"] = sum(r["wall_s"] for r in rows)
+    return row
 
 
 def run_scaling(args, devices, peaks, obs_dim, action_dim) -> list[dict]:
@@ -476,9 +512,9 @@ def run_collector(args, device) -> dict:
         obs = np.zeros(obs_dim, np.float32)
         z = agent.sample_z(1)[0]
         reps = 300 if args.quick else 1000
-        paths = {name: agent.act}
+        paths = {f"{name} actor": agent.act}
         if device.type == "cpu":
-            paths[f"{name}, torch modules"] = agent._act_torch
+            paths[f"{name} actor, torch modules"] = agent._act_torch
         for label, act in paths.items():
             for _ in range(50):
                 act(obs, z, explore=True)
@@ -564,14 +600,17 @@ def mem(key):
 
 
 LEARNER_COLUMNS = (
-    ("agent", "agent", "<5", "{}"), ("config", "config", "<10", "{}"), ("dev", "device", "<4", "{}"),
+    ("agent", "agent", "<5", "{}"), ("config", "config", "<14", "{}"), ("dev", "device", "<4", "{}"),
     ("thr", "threads", ">3", "{}"),
     ("prec", lambda r: r["precision"] + ("+compile" if r.get("compile") else ""), "<13", "{}"),
     ("H", "hidden_dim", ">4", "{}"), ("E", "feature_dim", ">3", "{}"), ("Hb", "backward_hidden_dim", ">3", "{}"),
     ("N", "batch_size", ">4", "{}"),
     ("ms/update", "ms_per_update", ">9", "{:.1f}"), ("min ms", "ms_per_update_min", ">7", "{:.1f}"),
+    ("rounds: ms", lambda r: (" / ".join(f"{t:.0f}" for t in r["ms_per_update_rounds"])
+                              if r.get("ms_per_update_rounds") else None), "<16", "{}"),
     ("sample ms", "ms_per_sample", ">9", "{:.2f}"), ("GFLOP", "gflop_per_update", ">7", "{:.2f}"),
-    ("GFLOP/s", "gflops", ">7", "{:.1f}"), ("% fp32 peak", lambda r: 100 * r["fraction_of_fp32_peak"], ">11", "{:.0f}"),
+    ("GFLOP/s", "gflops", ">7", "{:.1f}"), ("fp32 peak", "fp32_peak_local_gflops", ">9", "{:.0f}"),
+    ("% fp32 peak", lambda r: 100 * r["fraction_of_fp32_peak"], ">11", "{:.0f}"),
     ("% dtype peak", lambda r: 100 * r["fraction_of_dtype_peak"], ">12", "{:.0f}"),
     ("mm ms", "matmul_ms_per_update", ">6", "{:.1f}"), ("mm GFLOP/s", "matmul_gflops", ">10", "{:.1f}"),
     ("mm share", lambda r: 100 * r["matmul_share"] if "matmul_share" in r else None, ">8", "{:.0f}%"),
@@ -581,7 +620,9 @@ LEARNER_COLUMNS = (
 SCALING_COLUMNS = (
     ("H", "hidden_dim", ">4", "{}"), ("N", "batch_size", ">4", "{}"), ("dev", "device", "<4", "{}"),
     ("ms/update", "ms_per_update", ">9", "{:.1f}"), ("GFLOP", "gflop_per_update", ">7", "{:.2f}"),
-    ("GFLOP/s", "gflops", ">7", "{:.1f}"), ("% fp32 peak", lambda r: 100 * r["fraction_of_fp32_peak"], ">11", "{:.0f}"),
+    ("GFLOP/s", "gflops", ">7", "{:.1f}"), ("fp32 peak", "fp32_peak_local_gflops", ">9", "{:.0f}"),
+    ("% fp32 peak", lambda r: 100 * r["fraction_of_fp32_peak"], ">11", "{:.0f}"),
+    ("mm GFLOP/s", "matmul_gflops", ">10", "{:.1f}"),
 )
 COLLECTOR_COLUMNS = (("path", "path", "<48", "{}"), ("steps/s", "steps_per_s", ">8", "{:,.0f}"),
                      ("ratio to raw", "ratio_to_raw", ">12", "{:.3f}"))
@@ -601,8 +642,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--agents", default="dvfb,fb")
     parser.add_argument("--configs", default="paper,small,hidden256,hidden256_wide", help="learner configurations: " + ", ".join(CONFIGS))
     parser.add_argument("--precisions", default="fp32,bf16", help="learner precisions (fp32, bf16)")
-    parser.add_argument("--compile", action="store_true", help="add torch.compile rows (small preset; slow to compile)")
+    parser.add_argument("--compile", action="store_true", help="add torch.compile rows (slow to compile)")
+    parser.add_argument("--compile-configs", default="small", help="configurations of the --compile rows")
     parser.add_argument("--cuda-graphs", action="store_true", help="with --compile on CUDA: CUDA-graph rows")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="time every learner row this many times, round-robin over the rows, and report the "
+                             "median over rounds (a shared machine drifts by tens of percent within minutes)")
     parser.add_argument("--no-memory", action="store_true", help="skip the memory subprocesses")
     parser.add_argument("--scaling-hidden", default=None, help="hidden widths of the scaling grid (default 256,512,1024)")
     parser.add_argument("--scaling-batch", default=None, help="batch sizes of the scaling grid (default 256,512,1024,2048)")
@@ -624,7 +669,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = sorted(set(sections) - set(SECTIONS))
     if unknown:
         parser.error(f"unknown section(s) {unknown}; choose from {', '.join(SECTIONS)}")
-    for name in args.configs.split(","):
+    for name in args.configs.split(",") + (args.compile_configs.split(",") if args.compile else []):
         if name not in CONFIGS:
             parser.error(f"unknown config {name!r}; choose from {', '.join(CONFIGS)}")
     try:
@@ -633,6 +678,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--threads expects integers, got {args.threads!r}")
     if min(args.thread_counts) < 1:
         parser.error("--threads must be >= 1")
+    if args.rounds < 1:
+        parser.error("--rounds must be >= 1")
     torch.set_num_threads(args.thread_counts[0])
     if args.scaling_hidden is None:
         args.scaling_hidden = "256,1024" if args.quick else "256,512,1024"
@@ -690,7 +737,7 @@ def main(argv: list[str] | None = None) -> int:
         c = report["collector"]
         out += [f"## Collector ({c['task']}, {c['device']}; pre-training loop body without updates)",
                 table(c["rows"], COLLECTOR_COLUMNS),
-                "agent.act: " + ", ".join(f"{k} actor {v:.0f} us" for k, v in c["act_us"].items()), ""]
+                "agent.act per call: " + ", ".join(f"{k} {v:.0f} us" for k, v in c["act_us"].items()), ""]
     if "e2e" in sections:
         report["e2e"] = run_e2e(args, devices[0])
         e = report["e2e"]
