@@ -16,18 +16,19 @@ What each option does, and the defaults (see bench/README.md for the measurement
     output is cast back to float32 before it is used, so every loss, every reduction (the N x N
     FB/TM matrices, the Gram matrix, the covariance solve, the NCE and CE similarity matrices,
     the running statistics) and every optimiser state stays float32, as do the parameters
-    (autocast casts copies). Off by default: it changes the numerics of training, so it has to be
-    validated on learning curves before it can be recommended. (Quick A/B on the 2-core AMX
-    development CPU, 1 thread, under load: paper-size DVFB update 0.49x the fp32 time, FB 0.40x,
-    "hidden 256" DVFB 0.65x, small preset 0.85-0.95x.)
+    (autocast casts copies). Off by default: a short DVFB pre-training (walker, small preset, two
+    seeds; docs/results/precision_check.md) put 11 of 14 logged training curves within seed noise
+    of fp32 but not the orthonormality loss, the FB diagonal term and the exploration critic's
+    loss. Speed (bench/README.md, 2-core AMX CPU, 2 threads): the paper-size DVFB update takes
+    about half to two thirds of the fp32 time; at the small preset bf16 is no faster.
 
 * ``compile`` -- ``torch.compile`` each network used by the update (online and target). The loss
   code, the optimiser steps and acting stay eager. Compilation happens on the first update (tens
   of seconds per network on a small CPU); if ``torch.compile`` fails while compiling a network,
   a warning is logged and every network falls back to eager execution. Off by default: on the
-  development CPU the compiled small-preset DVFB update was about 1.4x *slower* than eager
-  (interleaved A/B, 1 thread, under load), after a first update of ~70 s (~12 s with a warm
-  inductor cache). Re-measure with ``bench/learner.py --compile``.
+  development CPU the compiled DVFB update is slower than eager (hidden 256: 99.8 ms against
+  50.1 ms, its matrix products alone twice as slow; small preset about 1.4x slower), after a
+  first update of ~20-70 s. Re-measure with ``bench/learner.py --compile --compile-configs ...``.
 
 * ``cuda_graphs`` -- CUDA only: compile the networks with ``mode="reduce-overhead"``, i.e. replay
   them as CUDA graphs, removing per-kernel launch overhead at small sizes. Implies ``compile``.
