@@ -342,6 +342,18 @@ def test_host_actor_rebinds_when_a_parameter_storage_is_replaced():
     np.testing.assert_allclose(host(obs[0], z[0]), expected, rtol=0, atol=2e-6)
 
 
+def test_act_follows_a_replaced_actor_module():
+    agent = FBAgent(OBS, ACT, tiny_config())
+    obs, z = _actor_inputs(1)
+    agent.act(obs[0], torch.as_tensor(z[0]), explore=False)
+    torch.manual_seed(7)
+    agent.actor = Actor(OBS, D, ACT, H, E)
+    with torch.no_grad():
+        expected = agent.actor(torch.as_tensor(obs), torch.as_tensor(z))[0].numpy()
+    np.testing.assert_allclose(agent.act(obs[0], torch.as_tensor(z[0]), explore=False), expected,
+                               rtol=0, atol=2e-6)
+
+
 def test_host_actor_rejects_non_float32_actors():
     with pytest.raises(ValueError, match="float32 actor on the CPU"):
         HostActor(Actor(OBS, D, ACT, H, E).double())

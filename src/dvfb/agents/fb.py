@@ -214,8 +214,8 @@ class FBAgent(nn.Module):
         """
         if self.device.type != "cpu":
             return self._act_torch(obs, z, explore)
-        if self._host_actor is None:
-            self._host_actor = HostActor(self.actor)
+        if self._host_actor is None or self._host_actor.actor is not self.actor:
+            self._host_actor = HostActor(self.actor)  # first call, or the actor module was replaced
         action = self._host_actor(obs, z.detach().numpy())
         if explore:
             # rollout_action's math: clamp(mu + sigma * eps), eps ~ N(0, 1) from torch's stream.
