@@ -208,8 +208,8 @@ class FBAgent(nn.Module):
         """One action for one observation: a rollout sample if ``explore``, else the mean (§3.3).
 
         Runs in float32 whatever ``perf`` says (batch 1: per-op overhead, not FLOPs). On the CPU
-        the mean comes from :class:`HostActor` (numpy on the actor's own parameter storage, about
-        3x faster than the torch modules at batch 1; bench/README.md); the exploration noise is
+        the mean comes from :class:`HostActor` (numpy on the actor's own parameter storage, 1.6-3x
+        faster than the torch modules at batch 1; bench/README.md); the exploration noise is
         still drawn from torch's generator, so the random stream is the same on every path.
         """
         if self.device.type != "cpu":
