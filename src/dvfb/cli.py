@@ -240,6 +240,12 @@ def cmd_video(args: argparse.Namespace) -> int:
 # Parser
 
 
+def add_snapshot_and_seed(p: argparse.ArgumentParser, seed_what: str = "seed") -> None:
+    """--snapshot and --seed of the commands that load a pre-trained run's agent."""
+    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
+    p.add_argument("--seed", type=int, default=None, help=f"{seed_what} (default: the run's seed)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from dvfb.agents.finetune import FinetuneConfig
     from dvfb.workflows.config import PRESETS, InferenceConfig, PretrainConfig, preset_config
@@ -277,8 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "Inference defaults come from the run's config.")
     p.add_argument("run", help="pre-training run directory")
     p.add_argument("--task", nargs="+", required=True, help="task name(s) of the run's domain, or 'all'")
-    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
-    p.add_argument("--seed", type=int, default=None, help="task seed (default: the run's seed)")
+    add_snapshot_and_seed(p, "task seed")
     p.add_argument("--z-source", default="rewards", choices=("rewards", "reward_fn", "goal"),
                    help="how z is obtained (default: %(default)s)")
     p.add_argument("--reward-fn", default=None, help="module:function or file.py:function mapping next_obs (N, O) to rewards")
@@ -292,8 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(algorithm.md §9). Defaults come from the run's config.")
     p.add_argument("run", help="pre-training run directory")
     p.add_argument("--task", required=True, help="task name of the run's domain")
-    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
-    p.add_argument("--seed", type=int, default=None, help="seed (default: the run's seed)")
+    add_snapshot_and_seed(p)
     p.add_argument("--name", default=None, help="name of the fine-tuning run under RUN/finetune/ (default: the task)")
     p.add_argument("--resume", action="store_true", help="continue from the latest fine-tuning checkpoint")
     p.add_argument("--overwrite", action="store_true", help="replace an existing fine-tuning run")
@@ -352,8 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes-per-skill", type=int, default=2, help="episodes per skill (default: %(default)s)")
     p.add_argument("--bins", type=int, default=4, help="equal-count return bins (default: %(default)s)")
     p.add_argument("--max-steps", type=int, default=None, help="cut episodes after this many steps (default: full)")
-    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
-    p.add_argument("--seed", type=int, default=None, help="seed (default: the run's seed)")
+    add_snapshot_and_seed(p)
     p.add_argument("--overwrite", action="store_true", help="replace existing analysis files")
     add_arguments(p, InferenceConfig, prefix="inference.")
     p.set_defaults(func=cmd_analyze_value)
@@ -373,8 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--actions", default="rollout", choices=("rollout", "mean"),
                    help="rollout samples (sigma 0.2, as in pre-training) or mean actions (default: %(default)s)")
     p.add_argument("--cell-size", type=float, default=None, help="coverage grid cell size (default: per domain)")
-    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
-    p.add_argument("--seed", type=int, default=None, help="seed (default: the run's seed)")
+    add_snapshot_and_seed(p)
     p.add_argument("--overwrite", action="store_true", help="replace existing analysis files")
     p.set_defaults(func=cmd_analyze_exploration)
 
@@ -394,8 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, default=320, help="(default: %(default)s)")
     p.add_argument("--camera", default=None, help="camera name or id (default: a per-domain view)")
     p.add_argument("--infer", action="store_true", help="infer z_r anew even if a zero-shot result exists")
-    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
-    p.add_argument("--seed", type=int, default=None, help="seed (default: the run's seed)")
+    add_snapshot_and_seed(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing video file")
     add_arguments(p, InferenceConfig, prefix="inference.")
     p.set_defaults(func=cmd_video)

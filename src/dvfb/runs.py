@@ -117,6 +117,15 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
+def read_json(path: str | os.PathLike, error: type[Exception] = RunDirError) -> Any:
+    """The parsed contents of the JSON file ``path``; an unreadable or malformed file raises
+    ``error`` (the caller's error type) with the path and the reason."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise error(f"{path} is corrupt or unreadable: {exc}") from exc
+
+
 def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
     """Write ``obj`` as indented JSON to ``path`` atomically, creating parent directories.
 
@@ -233,10 +242,7 @@ class RunDir:
         config_path = path / CONFIG_FILE
         if not config_path.is_file():
             raise RunDirError(f"{path} is not a dvfb run directory: it has no {CONFIG_FILE}")
-        try:
-            data = json.loads(config_path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise RunDirError(f"{config_path} is corrupt and cannot be read: {exc}") from exc
+        data = read_json(config_path, RunDirError)
         if not isinstance(data, dict):
             raise RunDirError(f"{config_path} is corrupt: expected a JSON object")
         return cls(path)
@@ -257,10 +263,7 @@ class RunDir:
 
     def read_meta(self) -> dict:
         """The contents of meta.json."""
-        try:
-            return json.loads(self.meta_path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise RunDirError(f"cannot read {self.meta_path}: {exc}") from exc
+        return read_json(self.meta_path, RunDirError)
 
 
 def _as_run_dir(run: RunDir | str | os.PathLike) -> RunDir:

@@ -13,7 +13,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -23,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from dvfb.errors import DvfbError
+from dvfb.runs import read_json as read_json_file
 
 log = logging.getLogger(__name__)
 
@@ -113,10 +113,7 @@ class Runs:
 
 def _config_kind(path: Path) -> str | None:
     """'pretrain', 'finetune' or None (not a dvfb run config) for a config.json."""
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise AnalysisError(f"{path} is corrupt and cannot be read: {exc}") from exc
+    data = read_json_file(path, AnalysisError)
     if not isinstance(data, dict):
         return None
     if "pretrain_run" in data and "task" in data:
@@ -221,10 +218,7 @@ class Score:
 
 
 def read_json(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise AnalysisError(f"{path} is corrupt and cannot be read: {exc}") from exc
+    data = read_json_file(path, AnalysisError)
     if not isinstance(data, dict):
         raise AnalysisError(f"{path} does not hold a JSON object")
     return data
