@@ -29,6 +29,8 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from dvfb.runs import read_metrics
+
 PRECISIONS = ("fp32", "bf16")
 METRICS = ("fb_loss", "fb_diag", "fb_offdiag", "ortho_loss", "fb_q_loss", "actor_loss", "skill_value",
            "rnd_loss", "nce_loss", "rnd_reward", "ce_reward", "intrinsic_reward", "exploration_critic_loss",
@@ -53,13 +55,13 @@ def pretrain(args, precision: str, seed: int) -> None:
     subprocess.run(cmd, check=True)
 
 
-def load_curves(run: Path) -> dict[int, dict[str, float]]:
-    rows = [json.loads(line) for line in (run / "metrics" / "train.jsonl").read_text().splitlines() if line]
-    return {row["step"]: row for row in rows}
+def load_curves(args) -> dict[tuple[str, int], dict[int, dict]]:
+    """(precision, seed) -> {step: logged training record} of every run."""
+    return {(p, s): {row["step"]: row for row in read_metrics(args.out / run_name(p, s), "train")}
+            for p in PRECISIONS for s in args.seeds}
 
 
-def compare(args) -> dict:
-    curves = {(p, s): load_curves(args.out / run_name(p, s)) for p in PRECISIONS for s in args.seeds}
+def compare(args, curves: dict) -> dict:
     steps = sorted(set.intersection(*(set(c) for c in curves.values())))
     if len(steps) < 2:
         raise SystemExit(f"{args.out}: fewer than two logged steps common to every run")
@@ -88,7 +90,7 @@ def compare(args) -> dict:
     return report
 
 
-def plot(args, report: dict) -> None:
+def plot(args, report: dict, curves: dict) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -102,7 +104,7 @@ def plot(args, report: dict) -> None:
     for ax, metric in zip(axes.flat, metrics):
         for p in PRECISIONS:
             for i, s in enumerate(args.seeds):
-                c = load_curves(args.out / run_name(p, s))
+                c = curves[(p, s)]
                 ts = sorted(c)
                 ax.plot(ts, [c[t][metric] for t in ts], color=colours[p], alpha=0.8,
                         linestyle="-" if i == 0 else "--", label=f"{p} seed {s}")
@@ -142,10 +144,11 @@ def main(argv: list[str] | None = None) -> int:
         with ThreadPoolExecutor(max_workers=args.parallel) as pool:
             for future in [pool.submit(pretrain, args, p, s) for p, s in jobs]:
                 future.result()
-    report = compare(args)
+    curves = load_curves(args)
+    report = compare(args, curves)
     report.update(domain=args.domain, preset=args.preset, frames=args.frames)
     (args.out / "comparison.json").write_text(json.dumps(report, indent=2) + "\n")
-    plot(args, report)
+    plot(args, report, curves)
     print("| metric | fp32 (2nd half, per seed) | bf16 (2nd half, per seed) | gap | seed spread | "
           "within noise | logged steps within |")
     print("|---|---|---|---:|---:|---|---:|")
