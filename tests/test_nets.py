@@ -352,6 +352,7 @@ def test_act_follows_a_replaced_actor_module():
         expected = agent.actor(torch.as_tensor(obs), torch.as_tensor(z))[0].numpy()
     np.testing.assert_allclose(agent.act(obs[0], torch.as_tensor(z[0]), explore=False), expected,
                                rtol=0, atol=2e-6)
+    assert agent._host_actor is not None and agent._host_actor.actor is agent.actor  # the numpy path ran
 
 
 def test_host_actor_rejects_non_float32_actors():
