@@ -31,7 +31,7 @@ from dvfb.cli import main
 from dvfb.config import merge, save_json
 from dvfb.runs import write_json_atomic
 from dvfb.workflows.config import preset_config
-from dvfb.workflows.finetune import FinetuneRunConfig
+from dvfb.workflows.finetune import finetune_run_config_class
 
 from test_workflows import FAST_INFERENCE, pretrain_args
 
@@ -61,8 +61,9 @@ def make_finetune_run(run: Path, task: str, points: list[tuple[int, float]], nam
                       seed: int | None = None, finished: bool = True, **finetune) -> Path:
     parent = json.loads((run / "config.json").read_text())
     seed = parent["seed"] if seed is None else seed
-    config = FinetuneRunConfig(pretrain_run=str(run), agent=parent["agent"], domain=parent["domain"], task=task,
-                               snapshot=100_000, seed=seed, finetune=FinetuneConfig(**finetune))
+    config = finetune_run_config_class(parent["agent"])(
+        pretrain_run=str(run), agent=parent["agent"], domain=parent["domain"], task=task, snapshot=100_000, seed=seed,
+        finetune=FinetuneConfig(**finetune))
     path = run / "finetune" / (name or task)
     path.mkdir(parents=True)
     save_json(config, path / "config.json")
@@ -114,13 +115,17 @@ def md_columns(markdown: str) -> list[str]:
 
 def test_method_name_is_derived_from_configs():
     config = preset_config("small")
-    assert method_name("dvfb", config.exploration) == "dvfb"
-    assert method_name("dvfb", {"use_ce": False}) == "dvfb_wo_ce"
-    assert method_name("fb", {"use_ce": False}) == "fb"  # CE is a DVFB option only
-    assert method_name("dvfb", config.exploration, FinetuneConfig()) == "dvfb"
-    assert method_name("dvfb", config.exploration, FinetuneConfig(eta=0.0)) == "dvfb_wo_svf"
-    assert method_name("fb", None, FinetuneConfig(reward_mapping=False)) == "fb_wo_map"
-    assert method_name("dvfb", {"use_ce": False}, {"eta": 0, "reward_mapping": False}) == "dvfb_wo_ce_wo_svf_wo_map"
+    assert method_name(config) == "dvfb"
+    assert method_name({"agent": "dvfb", "exploration": {"use_ce": False}}) == "dvfb_wo_ce"
+    assert method_name({"agent": "dvfb", "exploration": {"reward": "proto"}}) == "dvfb_proto"
+    assert method_name({"agent": "fb", "exploration": {"use_ce": False}}) == "fb"  # CE is a DVFB option only
+    assert method_name(config, FinetuneConfig()) == "dvfb"
+    assert method_name(config, FinetuneConfig(eta=0.0)) == "dvfb_wo_svf"
+    assert method_name({"agent": "fb"}, FinetuneConfig(reward_mapping=False)) == "fb_wo_map"
+    assert method_name({"agent": "dvfb", "exploration": {"use_ce": False}},
+                       {"eta": 0, "reward_mapping": False}) == "dvfb_wo_ce_wo_svf_wo_map"
+    assert method_name(preset_config("small", agent="rnd")) == "rnd"
+    assert method_name({"agent": "rnd"}, {"init_critic": "trunk"}) == "rnd"  # no FB ablation suffixes
 
 
 def test_zeroshot_table_cells(walker_runs: Path, tmp_path: Path):

@@ -11,7 +11,8 @@ from torch.nn import functional as F_nn
 
 from dvfb.agents.dvfb import DVFBAgent
 from dvfb.agents.fb import BACKWARD_INPUTS, FBAgent, FBConfig
-from dvfb.agents.intrinsic import RNDReward, contrastive_entropy_reward, nce_loss
+from dvfb.rewards.contrastive import contrastive_entropy_reward, nce_loss
+from dvfb.rewards.rnd import RNDReward
 from dvfb.nets import sample_z_prior, training_action
 from dvfb.replay import Batch
 from tiny import ACT, D, H, OBS, tiny_exploration
@@ -285,8 +286,8 @@ def test_intrinsic_reward_uses_the_just_updated_modules(rnd_input):
         normed = agent.rnd.networks.normalise(x)
         err = (agent.rnd.networks.target(normed) - agent.rnd.networks.predictor(normed)).pow(2).mean(-1)
         r_rnd = err / (agent.rnd.error_stats.var.sqrt().float() + 1e-8)
-        key = agent.contrastive.key(batch.obs, batch.next_obs)
-        query = agent.contrastive.query(labels)
+        key = agent.contrastive.encoders.key(batch.obs, batch.next_obs)
+        query = agent.contrastive.encoders.query(labels)
         r_ce = contrastive_entropy_reward(key, query, k=4)
     torch.testing.assert_close(reward, (r_rnd + 0.7 * r_ce[:, 0]).unsqueeze(-1), atol=1e-5, rtol=1e-5)
     assert {"rnd_loss", "nce_loss", "rnd_reward", "ce_reward", "intrinsic_reward"} <= set(metrics)
@@ -295,7 +296,7 @@ def test_intrinsic_reward_uses_the_just_updated_modules(rnd_input):
 def test_dvfb_without_ce_has_no_contrastive_module():
     torch.manual_seed(0)
     agent = DVFBAgent(OBS, ACT, tiny_config(), tiny_exploration(use_ce=False))
-    assert agent.contrastive is None and agent.contrastive_optimizer is None
+    assert agent.contrastive is None
     assert "contrastive_optimizer" not in agent.optimizers()
     assert not any(name.startswith("contrastive") for name, _ in agent.named_parameters())
     metrics = agent.update(make_batch(32))

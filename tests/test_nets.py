@@ -10,14 +10,14 @@ from scipy import stats
 from torch import nn
 
 from dvfb.agents.fb import BACKWARD_INPUTS, FBAgent
+from dvfb.rewards.contrastive import ContrastiveEncoders
+from dvfb.rewards.rnd import RNDNetworks
 from dvfb.nets import (
     ACTION_EPS,
     Actor,
     BackwardMap,
-    ContrastiveEncoders,
     ForwardMap,
     HostActor,
-    RNDNetworks,
     RunningMeanStd,
     TwinCritic,
     TwinHead,

@@ -293,7 +293,7 @@ def test_errors_are_clear():
         buffer.add(action_of(1, 0), 0.0, 1.0, obs_of(1, 1))
     single = make_buffer()
     run_episode(single, 0, 1)
-    with pytest.raises(ValueError, match="two-step successor"):
+    with pytest.raises(ValueError, match="2-step successor"):
         single.sample(4, need_future=True)
 
 

@@ -28,10 +28,9 @@ import torch
 from torch import nn
 
 import dvfb
-from dvfb.agents import make_agent
 from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig
 from dvfb.agents.fb import FBAgent, FBConfig
-from dvfb.agents.intrinsic import contrastive_entropy_reward
+from dvfb.rewards.contrastive import contrastive_entropy_reward
 from dvfb.agents.perf import NetRunner, PerfConfig
 from dvfb.errors import ConfigError
 from dvfb.nets import TwinHead
@@ -211,7 +210,7 @@ class Reference:
             self.opt["critic_optimizer"] = plain_adam(n.exploration_critic.parameters())
             self.opt["rnd_optimizer"] = plain_adam(n.rnd.networks.predictor.parameters())
             if n.contrastive is not None:
-                self.opt["contrastive_optimizer"] = plain_adam(n.contrastive.parameters())
+                self.opt["contrastive_optimizer"] = plain_adam(n.contrastive.encoders.parameters())
             s = n.rnd.error_stats
             self.rms = RefRMS(s.mean, s.var, s.count)
         self.names = {id(p): name for name, p in n.named_parameters()}
@@ -266,7 +265,7 @@ class Reference:
                 labels = ref_backward(n.backward_map, label_in)
 
             def key_query():
-                enc = n.contrastive
+                enc = n.contrastive.encoders
                 key = ref_seq(torch.cat([ref_seq(s, enc.state_net), ref_seq(s1, enc.state_net)], -1),
                               enc.transition_net)
                 return key, ref_seq(labels, enc.skill_net)
@@ -504,8 +503,9 @@ def no_host_sync(monkeypatch):
 @pytest.mark.parametrize("mode", ["state", "code_exact"])
 def test_update_path_has_no_host_sync(no_host_sync, agent_name, mode):
     torch.manual_seed(0)
-    agent = make_agent(agent_name, OBS, ACT, small_config(backward_input=mode),
-                       small_exploration(alpha_mode="adaptive"))
+    fb = small_config(backward_input=mode)
+    agent = (DVFBAgent(OBS, ACT, fb, small_exploration(alpha_mode="adaptive")) if agent_name == "dvfb"
+             else FBAgent(OBS, ACT, fb))
     for seed in range(2):
         metrics = agent.update(make_batch(40, seed, torch.float32))
     assert no_host_sync == []
@@ -557,9 +557,9 @@ def test_each_network_forward_runs_once_per_use(mode, b_calls):
         "exploration_critic_target": 1,
         "rnd.networks.target": 1,   # shared by the RND loss and reward
         "rnd.networks.predictor": 2,  # loss, then reward with the updated predictor
-        "contrastive.state_net": 2,   # NCE loss, then CE reward with the updated encoders; s and s' in one pass
-        "contrastive.transition_net": 2,
-        "contrastive.skill_net": 2,
+        "contrastive.encoders.state_net": 2,   # NCE loss, then CE reward with the updated encoders; s and s' in one pass
+        "contrastive.encoders.transition_net": 2,
+        "contrastive.encoders.skill_net": 2,
     }
     counts = count_forwards(agent, expected)
     agent.update(make_batch(40, 0, torch.float32))

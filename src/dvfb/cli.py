@@ -10,6 +10,7 @@ checkpoint, NaN loss) print one line and exit with status 2; nothing existing is
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 from pathlib import Path
@@ -55,10 +56,60 @@ def cmd_tasks(args: argparse.Namespace) -> int:
 
 
 def _pretrain_config(args: argparse.Namespace):
-    from dvfb.workflows.config import PretrainConfig, preset_config
+    from dvfb.workflows.config import preset_config, run_config_class
 
-    base = preset_config(args.preset)
-    return merge(base, overrides_from_args(args, PretrainConfig))
+    base = preset_config(args.preset, args.agent)
+    return merge(base, overrides_from_args(args, run_config_class(args.agent)))
+
+
+def cmd_agents(args: argparse.Namespace) -> int:
+    """The registered methods, from the registry."""
+    from dvfb.agents import AGENTS
+
+    rows = [(s.name, s.family, s.zero_shot, s.finetuner.__name__, ", ".join(s.sections)) for s in AGENTS.values()]
+    header = ("agent", "family", "zero-shot", "fine-tuner", "config sections")
+    widths = [max(len(r[i]) for r in rows + [header]) for i in range(len(header))]
+    print("  ".join(h.ljust(w) for h, w in zip(header, widths)))
+    for row in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(row, widths)))
+    print()
+    for spec in AGENTS.values():
+        print(f"{spec.name}: {spec.summary}")
+    return 0
+
+
+def _protocol_classes(kind: str) -> list[type]:
+    """The config classes of every registered family's zero-shot or fine-tuning protocol."""
+    from dvfb.agents import AGENTS
+
+    classes: list[type] = []
+    for spec in AGENTS.values():
+        cls = getattr(spec, kind)
+        if cls not in classes:
+            classes.append(cls)
+    return classes
+
+
+def _add_protocol_arguments(p: argparse.ArgumentParser, kind: str) -> None:
+    """``--inference.*`` or ``--finetune.*`` flags: the union of the families' fields, each once.
+
+    Which of them apply depends on the run's method; a flag its family lacks is an error naming
+    the family's config class when the run is loaded.
+    """
+    seen: set[str] = set()
+    for cls in _protocol_classes(kind):
+        skip = tuple(f.name for f in dataclasses.fields(cls) if f.name in seen)
+        if len(skip) < len(dataclasses.fields(cls)):
+            group = p.add_argument_group(f"{kind} options ({cls.__name__})")
+            add_arguments(group, cls, prefix=f"{kind}.", skip=skip)
+        seen.update(f.name for f in dataclasses.fields(cls))
+
+
+def _protocol_overrides(args: argparse.Namespace, kind: str) -> dict:
+    out: dict = {}
+    for cls in _protocol_classes(kind):
+        out.update(overrides_from_args(args, cls, prefix=f"{kind}."))
+    return out
 
 
 def cmd_pretrain(args: argparse.Namespace) -> int:
@@ -75,12 +126,11 @@ def cmd_pretrain(args: argparse.Namespace) -> int:
 def cmd_zeroshot(args: argparse.Namespace) -> int:
     from dvfb import envs
     from dvfb.workflows.common import open_pretrained_run
-    from dvfb.workflows.config import InferenceConfig
     from dvfb.workflows.zeroshot import zeroshot
 
     _run, config = open_pretrained_run(args.run)
     tasks = envs.tasks_of_domain(config.domain) if args.task == ["all"] else args.task
-    inference = overrides_from_args(args, InferenceConfig, prefix="inference.")
+    inference = _protocol_overrides(args, "inference")
     goal = _parse_goal(args.goal) if args.goal else None
     rows = []
     for task in tasks:
@@ -95,13 +145,11 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
 
 
 def cmd_finetune(args: argparse.Namespace) -> int:
-    from dvfb.agents.finetune import FinetuneConfig
-    from dvfb.workflows.config import InferenceConfig
     from dvfb.workflows.finetune import finetune
 
     run = finetune(args.run, args.task, snapshot=args.snapshot, seed=args.seed, name=args.name,
-                   inference=overrides_from_args(args, InferenceConfig, prefix="inference."),
-                   finetune=overrides_from_args(args, FinetuneConfig, prefix="finetune."),
+                   inference=_protocol_overrides(args, "inference"),
+                   finetune=_protocol_overrides(args, "finetune"),
                    resume=args.resume, overwrite=args.overwrite, progress=args.progress)
     import json
 
@@ -187,7 +235,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 def cmd_analyze_value(args: argparse.Namespace) -> int:
     """Skill value vs return (paper §4, Fig. 3b)."""
     from dvfb.analysis.value import analyze_value
-    from dvfb.workflows.config import InferenceConfig
+    from dvfb.agents.protocols import InferenceConfig
 
     summary = analyze_value(args.run, args.task, skills=args.skills, episodes_per_skill=args.episodes_per_skill,
                             bins=args.bins, max_steps=args.max_steps, snapshot=args.snapshot, seed=args.seed,
@@ -224,11 +272,10 @@ def cmd_analyze_exploration(args: argparse.Namespace) -> int:
 def cmd_video(args: argparse.Namespace) -> int:
     """A video of zero-shot evaluation episodes."""
     from dvfb.analysis.video import record_video
-    from dvfb.workflows.config import InferenceConfig
 
     result = record_video(args.run, args.task, episodes=args.episodes, out=args.out, max_steps=args.max_steps,
                           frame_skip=args.frame_skip, height=args.height, width=args.width, camera=args.camera,
-                          inference=overrides_from_args(args, InferenceConfig, prefix="inference."),
+                          inference=_protocol_overrides(args, "inference"),
                           snapshot=args.snapshot, seed=args.seed, infer=args.infer, overwrite=args.overwrite)
     returns = ", ".join(f"{r:.1f}" for r in result["returns"])
     print(f"{result['path']}: {result['episodes']} episode(s), {result['frames']} frames at {result['fps']:g} fps; "
@@ -246,18 +293,24 @@ def add_snapshot_and_seed(p: argparse.ArgumentParser, seed_what: str = "seed") -
     p.add_argument("--seed", type=int, default=None, help=f"{seed_what} (default: the run's seed)")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from dvfb.agents.finetune import FinetuneConfig
-    from dvfb.workflows.config import PRESETS, InferenceConfig, PretrainConfig, preset_config
+def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
+    """The parser; ``pretrain``'s config flags are those of ``agent`` (read from ``--agent`` first)."""
+    from dvfb.agents import agent_names
+    from dvfb.agents.protocols import InferenceConfig
+    from dvfb.workflows.config import PRESETS, preset_config, run_config_class
 
-    parser = argparse.ArgumentParser(prog="dvfb", description="Online unsupervised zero-shot RL: DVFB and FB.",
-                                     formatter_class=_Formatter)
+    parser = argparse.ArgumentParser(prog="dvfb", description="Online unsupervised zero-shot RL: DVFB, FB and "
+                                     "baselines (`dvfb agents`).", formatter_class=_Formatter)
     parser.add_argument("--version", action="version", version=f"dvfb {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("tasks", help="print the task table", description="Print every task with its dimensions.")
     p.set_defaults(func=cmd_tasks)
+
+    p = sub.add_parser("agents", help="list the methods", description="Every registered method with its family, "
+                       "zero-shot strategy, fine-tuner and config sections.")
+    p.set_defaults(func=cmd_agents)
 
     def progress_flag(p):
         p.add_argument("--progress", dest="progress", action="store_true", default=None,
@@ -266,15 +319,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "pretrain", help="reward-free pre-training", formatter_class=_Formatter,
-        description="Reward-free online pre-training (algorithm.md §7). Defaults shown are those of the "
-                    f"{DEFAULT_PRESET!r} preset; --preset paper gives the spec's values (hidden 1024, "
-                    "batch 1024, 2M frames), --preset code the authors' constants.")
+        description="Reward-free online pre-training (docs/methods.md). Defaults shown are those of the "
+                    f"{DEFAULT_PRESET!r} preset for --agent {agent}; --preset paper gives the spec's values "
+                    "(hidden 1024, batch 1024, 2M frames), --preset code the authors' constants. The config "
+                    "sections depend on the method: `dvfb pretrain --agent NAME --help` shows its flags.")
     p.add_argument("--preset", default=DEFAULT_PRESET, choices=PRESETS, help="base configuration (default: %(default)s)")
     p.add_argument("--run-dir", default=None, help="run directory (default: runs/<agent>_<domain>_<preset>_s<seed>)")
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir from its latest checkpoint")
     p.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
     progress_flag(p)
-    add_arguments(p, PretrainConfig, defaults=preset_config(DEFAULT_PRESET), skip=("preset",))
+    p.add_argument("--agent", default=agent, choices=agent_names(), help="method (default: %(default)s)")
+    add_arguments(p, run_config_class(agent), defaults=preset_config(DEFAULT_PRESET, agent), skip=("preset", "agent"))
     p.set_defaults(func=cmd_pretrain)
 
     p = sub.add_parser("zeroshot", help="infer z for a task and evaluate", formatter_class=_Formatter,
@@ -289,12 +344,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reward-fn", default=None, help="module:function or file.py:function mapping next_obs (N, O) to rewards")
     p.add_argument("--goal", default=None, help="goal observation: a .npy file or comma-separated numbers")
     p.add_argument("--overwrite", action="store_true", help="replace an existing result file")
-    add_arguments(p, InferenceConfig, prefix="inference.")
+    _add_protocol_arguments(p, "inference")
     p.set_defaults(func=cmd_zeroshot)
 
-    p = sub.add_parser("finetune", help="dual-value fine-tuning on a task", formatter_class=_Formatter,
-                       description="Fine-tuning with a fresh task critic, reward mapping and the skill value "
-                                   "(algorithm.md §9). Defaults come from the run's config.")
+    p = sub.add_parser("finetune", help="fine-tune a pre-trained run on a task", formatter_class=_Formatter,
+                       description="Fine-tuning by the method family's protocol: dual-value (a fresh task critic, "
+                                   "reward mapping and the skill value) for DVFB/FB, URLB's (pre-trained actor, "
+                                   "fresh critic with the pre-trained trunk, extrinsic n-step reward) for the "
+                                   "DDPG baselines. Defaults come from the run's config.")
     p.add_argument("run", help="pre-training run directory")
     p.add_argument("--task", required=True, help="task name of the run's domain")
     add_snapshot_and_seed(p)
@@ -302,8 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from the latest fine-tuning checkpoint")
     p.add_argument("--overwrite", action="store_true", help="replace an existing fine-tuning run")
     progress_flag(p)
-    add_arguments(p, InferenceConfig, prefix="inference.")
-    add_arguments(p, FinetuneConfig, prefix="finetune.")
+    _add_protocol_arguments(p, "inference")
+    _add_protocol_arguments(p, "finetune")
     p.set_defaults(func=cmd_finetune)
 
     p = sub.add_parser("random-policy", help="returns of a uniform-random policy on a domain's tasks",
@@ -317,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="short pre-train -> zero-shot on every task -> table",
                        description="The README's end-to-end demo on the small CPU preset.")
-    p.add_argument("--agent", default="dvfb", choices=("dvfb", "fb"), help="(default: %(default)s)")
+    p.add_argument("--agent", default="dvfb", choices=agent_names(), help="(default: %(default)s)")
     p.add_argument("--domain", default="walker", help="(default: %(default)s)")
     p.add_argument("--frames", type=int, default=6000, help="pre-training frames (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="(default: %(default)s)")
@@ -398,13 +455,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--infer", action="store_true", help="infer z_r anew even if a zero-shot result exists")
     add_snapshot_and_seed(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing video file")
-    add_arguments(p, InferenceConfig, prefix="inference.")
+    _add_protocol_arguments(p, "inference")
     p.set_defaults(func=cmd_video)
     return parser
 
 
+def _requested_agent(argv: list[str]) -> str:
+    """The value of ``pretrain --agent`` (which decides the config flags), before the full parse."""
+    from dvfb.agents import agent_names
+
+    if "pretrain" not in argv:
+        return "dvfb"
+    rest = argv[argv.index("pretrain") + 1:]
+    for i, token in enumerate(rest):
+        value = None
+        if token == "--agent" and i + 1 < len(rest):
+            value = rest[i + 1]
+        elif token.startswith("--agent="):
+            value = token.split("=", 1)[1]
+        if value is not None:
+            return value if value in agent_names() else "dvfb"  # argparse names a bad choice
+    return "dvfb"
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(_requested_agent(argv))
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")

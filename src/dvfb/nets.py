@@ -8,9 +8,11 @@ head or an EMA target is written once:
 * :class:`TwinHead` -- K independent heads on a shared input, evaluated as one wide matrix product
   plus one batched matrix product instead of K separate MLPs (§4.2, §4.4, D13);
 * :class:`ForwardMap`, :class:`BackwardMap`, :class:`Actor`, :class:`TwinCritic` (§4.1-§4.4);
-* :class:`RNDNetworks` and :class:`ContrastiveEncoders` (§4.5, §4.6);
 * the policy distribution helpers (§3.3), sphere projection and the z prior (§5.1);
-* :func:`orthogonal_init_`, :func:`soft_update_` (EMA, §3.5) and :class:`RunningMeanStd` (§3.4).
+* :func:`orthogonal_init_`, :func:`soft_update_` (EMA, §3.5) and :class:`RunningMeanStd` (§3.4);
+* :func:`adam` and :func:`twin_td_loss`, the optimiser and critic loss of every agent.
+
+The intrinsic-reward networks (RND, contrastive encoders, ...) live in :mod:`dvfb.rewards`.
 """
 
 from __future__ import annotations
@@ -84,6 +86,30 @@ def freeze_(module: nn.Module) -> nn.Module:
 
 
 # ---------------------------------------------------------------------------------------------
+# Optimisation and TD losses (shared by every agent and fine-tuner)
+
+
+def adam(params, lr: float, fused: bool) -> torch.optim.Adam:
+    """Adam with default betas/eps and no weight decay (§3.6); fused when asked and possible."""
+    params = list(params)
+    if fused:
+        try:
+            return torch.optim.Adam(params, lr=lr, fused=True)
+        except (RuntimeError, TypeError):  # pragma: no cover - backend without fused Adam
+            pass
+    return torch.optim.Adam(params, lr=lr, foreach=True)
+
+
+def twin_td_loss(q: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Sum over the K heads of the mean squared TD error: ``q`` is ``(K, N, 1)``, ``target`` ``(N, 1)``.
+
+    The critic loss of DVFB's exploration critic, of the fine-tuning task critic and of the DDPG
+    core (docs/methods.md, "Shared blocks").
+    """
+    return (q - target).pow(2).mean(dim=(1, 2)).sum()
+
+
+# ---------------------------------------------------------------------------------------------
 # MLPs
 
 
@@ -116,6 +142,9 @@ def mlp(*dims: int, first_layer_lnt: bool = False, output_activation: nn.Module 
     return nn.Sequential(*layers)
 
 
+TWIN_HEAD_INITS = ("orthogonal", "default")
+
+
 class TwinHead(nn.Module):
     """K independent two-layer heads ``in -> hidden -> ReLU -> out`` on a shared input.
 
@@ -124,15 +153,23 @@ class TwinHead(nn.Module):
     ``Linear -> ReLU -> Linear`` heads (tested in tests/test_nets.py).
     """
 
-    def __init__(self, in_dim: int, hidden_dim: int, out_dim: int, num_heads: int = 2):
+    def __init__(self, in_dim: int, hidden_dim: int, out_dim: int, num_heads: int = 2, init: str = "orthogonal"):
         super().__init__()
+        if init not in TWIN_HEAD_INITS:
+            raise ValueError(f"init must be one of {TWIN_HEAD_INITS}, got {init!r}")
         self.in_dim, self.hidden_dim, self.out_dim, self.num_heads = in_dim, hidden_dim, out_dim, num_heads
+        self.init = init
         self.first = nn.Linear(in_dim, num_heads * hidden_dim)
         self.second_weight = nn.Parameter(torch.empty(num_heads, hidden_dim, out_dim))
         self.second_bias = nn.Parameter(torch.empty(num_heads, 1, out_dim))
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
+        """Each member as its own pair of Linear layers: orthogonal weights and zero biases, or
+        (``init="default"``) PyTorch's default Linear initialisation (the URLB ensembles)."""
+        if self.init == "default":
+            self._reset_default()
+            return
         with torch.no_grad():
             for k in range(self.num_heads):
                 rows = slice(k * self.hidden_dim, (k + 1) * self.hidden_dim)
@@ -144,6 +181,16 @@ class TwinHead(nn.Module):
                 self.second_weight[k].copy_(member.t())
             self.first.bias.zero_()
             self.second_bias.zero_()
+
+    def _reset_default(self) -> None:
+        with torch.no_grad():
+            for k in range(self.num_heads):
+                rows = slice(k * self.hidden_dim, (k + 1) * self.hidden_dim)
+                first, second = nn.Linear(self.in_dim, self.hidden_dim), nn.Linear(self.hidden_dim, self.out_dim)
+                self.first.weight[rows].copy_(first.weight)
+                self.first.bias[rows].copy_(first.bias)
+                self.second_weight[k].copy_(second.weight.t())
+                self.second_bias[k, 0].copy_(second.bias)
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         n = h.shape[0]
@@ -378,61 +425,6 @@ class TwinCritic(nn.Module):
 
     def forward(self, obs: torch.Tensor, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         return self.heads(self.trunk(torch.cat([obs, z, action], dim=-1)))
-
-
-# ---------------------------------------------------------------------------------------------
-# Intrinsic-reward networks
-
-
-class RNDNetworks(nn.Module):
-    """RND predictor and frozen random target on batch-normalised, clipped input (§4.5).
-
-    The normalisation is a per-dimension batch norm without affine parameters, always using the
-    current batch statistics (biased variance, eps 1e-5), then a clamp to ``[-clip, clip]``.
-    """
-
-    def __init__(self, obs_dim: int, hidden_dim: int, rep_dim: int = 512, obs_clip: float = 5.0):
-        super().__init__()
-        self.obs_clip = obs_clip
-        self.predictor = mlp(obs_dim, hidden_dim, hidden_dim, rep_dim)
-        self.target = freeze_(mlp(obs_dim, hidden_dim, hidden_dim, rep_dim))
-        orthogonal_init_(self)
-
-    def normalise(self, obs: torch.Tensor) -> torch.Tensor:
-        normed = F_nn.batch_norm(obs, None, None, training=True, eps=1e-5)
-        return normed.clamp(-self.obs_clip, self.obs_clip)
-
-    @staticmethod
-    def error(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """Per-sample error ``mean_k (target_k - prediction_k)^2`` -> ``(N,)``."""
-        return (target - prediction).pow(2).mean(-1)
-
-
-class ContrastiveEncoders(nn.Module):
-    """The CIC-style encoders behind the CE reward (§4.6).
-
-    * ``state_net`` g: ``O -> H -> H -> c``;
-    * ``transition_net`` (pred): ``key(s, s') = pred([g(s), g(s')])``, ``2c -> H -> H -> c``;
-    * ``skill_net`` (query): ``c -> H -> H -> c``.
-    """
-
-    def __init__(self, obs_dim: int, skill_dim: int, hidden_dim: int):
-        super().__init__()
-        self.state_net = mlp(obs_dim, hidden_dim, hidden_dim, skill_dim)
-        self.transition_net = mlp(2 * skill_dim, hidden_dim, hidden_dim, skill_dim)
-        self.skill_net = mlp(skill_dim, hidden_dim, hidden_dim, skill_dim)
-        orthogonal_init_(self)
-
-    def key(self, obs: torch.Tensor, next_obs: torch.Tensor, run=None) -> torch.Tensor:
-        """``pred([g(s), g(s')])``; ``run(net, x)``, if given, calls the two networks."""
-        run = run if run is not None else call_network
-        # One pass of g over both columns instead of two.
-        both = run(self.state_net, torch.cat([obs, next_obs], dim=0))
-        g_obs, g_next = both.chunk(2, dim=0)
-        return run(self.transition_net, torch.cat([g_obs, g_next], dim=-1))
-
-    def query(self, skill: torch.Tensor) -> torch.Tensor:
-        return self.skill_net(skill)
 
 
 # ---------------------------------------------------------------------------------------------

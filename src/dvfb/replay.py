@@ -71,8 +71,9 @@ _BYTES_PER_LENGTH = 8
 class Batch:
     """A batch of transitions, all tensors on the buffer's device.
 
-    ``reward`` and ``discount`` have shape (B, 1); ``discount`` is ``gamma * env_discount`` (n-step
-    with n = 1, spec section 6). ``future_obs`` is ``obs_{t+2}`` when it was requested, else None.
+    ``reward`` and ``discount`` have shape (B, 1); ``discount`` is ``gamma * env_discount`` for
+    one-step batches, and ``gamma^n`` times the n environment discounts for n-step batches, whose
+    ``next_obs`` is ``s_{t+n}`` and ``reward`` the discounted n-step sum (spec section 6). ``future_obs`` is ``obs_{t+2}`` when it was requested, else None.
     ``z`` is the stored rollout task vector, (B, z_dim), or None when the buffer has ``z_dim = 0``.
     """
 
@@ -294,23 +295,30 @@ class ReplayBuffer:
         return (self._first + np.arange(self._num_episodes)) % self.num_slots
 
     def sample(self, batch_size: int, gamma: float = 0.99, need_future: bool = False,
-               generator: torch.Generator | None = None) -> Batch:
+               generator: torch.Generator | None = None, nstep: int = 1) -> Batch:
         """Draw ``batch_size`` transitions uniformly with replacement (spec section 6).
 
         With ``need_future`` only transitions whose ``obs_{t+2}`` exists in the same episode are
-        eligible and the batch has ``future_obs``. ``generator`` makes the draw reproducible; the
-        indices are drawn on its device.
+        eligible and the batch has ``future_obs``. With ``nstep = n > 1`` only transitions whose
+        ``obs_{t+n}`` exists in the same episode are eligible, and a row is
+        ``(s_t, a_t, sum_i gamma^i prod_{j<i} d_{t+j} r_{t+i}, gamma^n prod_j d_{t+j}, s_{t+n})``
+        (URLB's n-step tuple; docs/methods.md, "Replay"). ``generator`` makes the draw
+        reproducible; the indices are drawn on its device.
         """
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        if nstep < 1:
+            raise ValueError(f"nstep must be >= 1, got {nstep}")
         slots = self._ring_slots()
         counts = self._lengths[slots]
-        if need_future:
-            counts = np.maximum(counts - 1, 0)
+        # Steps after t that must exist in the same episode: n for s_{t+n}, 2 for s_{t+2}.
+        horizon = max(nstep, 2 if need_future else 1)
+        if horizon > 1:
+            counts = np.maximum(counts - (horizon - 1), 0)
         cumulative = np.cumsum(counts)
         total = int(cumulative[-1]) if len(cumulative) else 0
         if total == 0:
-            what = "with a two-step successor " if need_future else ""
+            what = f"with a {horizon}-step successor " if horizon > 1 else ""
             raise ValueError(f"cannot sample: the replay buffer holds no transition {what}yet")
 
         index_device = generator.device if generator is not None else torch.device("cpu")
@@ -320,6 +328,8 @@ class ReplayBuffer:
         step = draws - (cumulative_t[episode] - torch.from_numpy(counts).to(index_device)[episode])
         slot = torch.from_numpy(slots).to(index_device)[episode]
         self._flush()
+        if nstep > 1:
+            return self._gather_nstep(slot.to(self.device), step.to(self.device), gamma, need_future, nstep)
         return self._gather(slot.to(self.device), step.to(self.device), gamma, need_future)
 
     def transitions(self, gamma: float = 0.99) -> Batch:
@@ -346,6 +356,26 @@ class ReplayBuffer:
             reward=self._s_reward[slot, step],
             discount=self._s_discount[slot, step] * gamma,
             next_obs=self._s_obs[slot, step + 1],
+            future_obs=self._s_obs[slot, step + 2] if need_future else None,
+            z=self._s_z[slot, step] if self.z_dim else None,
+        )
+
+    def _gather_nstep(self, slot: torch.Tensor, step: torch.Tensor, gamma: float, need_future: bool,
+                      nstep: int) -> Batch:
+        rows = step.unsqueeze(1) + torch.arange(nstep, device=step.device)  # (N, n): steps t .. t+n-1
+        slots = slot.unsqueeze(1)
+        reward = self._s_reward[slots, rows]  # (N, n, 1)
+        env_discount = self._s_discount[slots, rows]
+        # Weight of r_{t+i}: gamma^i times the environment discounts of the steps before it.
+        survive = torch.cumprod(env_discount, dim=1)
+        powers = gamma ** torch.arange(nstep, device=step.device, dtype=reward.dtype).reshape(1, nstep, 1)
+        weights = torch.cat([torch.ones_like(survive[:, :1]), survive[:, :-1]], dim=1) * powers
+        return Batch(
+            obs=self._s_obs[slot, step],
+            action=self._s_action[slot, step],
+            reward=(weights * reward).sum(1),
+            discount=survive[:, -1] * gamma ** nstep,
+            next_obs=self._s_obs[slot, step + nstep],
             future_obs=self._s_obs[slot, step + 2] if need_future else None,
             z=self._s_z[slot, step] if self.z_dim else None,
         )

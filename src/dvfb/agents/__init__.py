@@ -1,28 +1,31 @@
-"""Agents: one module per method. ``make_agent`` builds an FB-family agent from a run config."""
+"""Agents: one module per method, each registering its :class:`~dvfb.agents.registry.AgentSpec`.
+
+The workflows use agents only through :class:`~dvfb.agents.base.Agent` and the registry
+(:func:`make_agent`, :func:`get_spec`). Importing this package registers every method: a new
+method adds one import line below (docs/adding_a_method.md).
+"""
 
 from __future__ import annotations
 
 import torch
 
-from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig
-from dvfb.agents.fb import FBAgent, FBConfig
-from dvfb.agents.perf import PerfConfig
-from dvfb.errors import ConfigError
+from dvfb.agents.base import Agent, ReplayNeeds
+from dvfb.agents.registry import AGENTS, AgentSpec, agent_names, get_spec, register
 
-AGENTS = ("dvfb", "fb")
+# Registration: one line per method.
+from dvfb.agents import fb  # noqa: E402,F401  (also registers the FB fine-tuner)
+from dvfb.agents import dvfb  # noqa: E402,F401
+from dvfb.agents import rnd  # noqa: E402,F401
 
-
-def make_agent(name: str, obs_dim: int, action_dim: int, fb: FBConfig, exploration: ExplorationConfig,
-               device: str | torch.device = "cpu", perf: PerfConfig | None = None) -> FBAgent:
-    """``dvfb`` (FB + exploration critic) or ``fb`` (online FB, algorithm.md §10.4).
-
-    ``perf`` sets how the updates execute (precision, compilation); None = fp32, eager.
-    """
-    if name == "dvfb":
-        return DVFBAgent(obs_dim, action_dim, fb, exploration, device, perf)
-    if name == "fb":
-        return FBAgent(obs_dim, action_dim, fb, device, perf)
-    raise ConfigError(f"unknown agent {name!r}; choose one of {', '.join(AGENTS)}")
+from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig  # noqa: E402
+from dvfb.agents.fb import FBAgent, FBConfig  # noqa: E402
+from dvfb.agents.perf import PerfConfig  # noqa: E402
 
 
-__all__ = ["AGENTS", "DVFBAgent", "ExplorationConfig", "FBAgent", "FBConfig", "PerfConfig", "make_agent"]
+def make_agent(name: str, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> Agent:
+    """Build the registered agent ``name`` from a run config (its sections and ``perf``)."""
+    return get_spec(name).agent_cls.from_config(obs_dim, action_dim, config, device)
+
+
+__all__ = ["AGENTS", "Agent", "AgentSpec", "DVFBAgent", "ExplorationConfig", "FBAgent", "FBConfig", "PerfConfig",
+           "ReplayNeeds", "agent_names", "get_spec", "make_agent", "register"]

@@ -1,35 +1,43 @@
-"""DVFB: FB plus an exploration critic driven by RND + contrastive-entropy rewards.
+"""DVFB: FB plus an exploration critic driven by an intrinsic reward (RND + contrastive entropy).
 
 algorithm.md §0, §7.2-§7.7, §7.11. The skill value Q_M = F . z keeps learning the successor
 measure; a separate z-conditioned twin critic Q_P learns from the intrinsic reward
 ``r_rnd + beta * r_ce`` and the actor maximises ``Q_M + alpha * Q_P``. "DVFB w/o CE" is
-``use_ce = false`` (no contrastive module at all, ``r = r_rnd``).
+``use_ce = false`` (no contrastive module at all, ``r = r_rnd``). ``exploration.reward`` swaps the
+whole intrinsic reward for one of the paper's Table 8 variants (docs/methods.md, "DVFB with other
+intrinsic rewards"): ICM-APT, Proto or CIC, the same :mod:`dvfb.rewards` modules the baselines use.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
 
-from dvfb.agents.fb import FBAgent, FBConfig, adam
+from dvfb.agents.fb import FB_SMALL, FBAgent, FBConfig, fb_finetune_label
+from dvfb.agents.finetune import DualValueFinetuner, FinetuneConfig
 from dvfb.agents.perf import PerfConfig
-from dvfb.agents.intrinsic import (
-    CE_AGGREGATES,
-    CE_NEIGHBOURS,
-    RNDReward,
-    contrastive_entropy_reward,
-    nce_loss,
-)
+from dvfb.agents.protocols import InferenceConfig
+from dvfb.agents.registry import AgentSpec, config_field, register
 from dvfb.config import param
-from dvfb.nets import ContrastiveEncoders, TwinCritic, make_target
+from dvfb.nets import TwinCritic, adam, make_target, twin_td_loss
 from dvfb.replay import Batch
+from dvfb.rewards.contrastive import CE_AGGREGATES, CE_NEIGHBOURS, CICConfig, CICReward, ContrastiveEntropyReward
+from dvfb.rewards.icm import ICMAPTConfig, ICMAPTReward
+from dvfb.rewards.proto import ProtoConfig, ProtoReward
+from dvfb.rewards.rnd import RNDReward
+
+EXPLORATION_REWARDS = ("rnd_ce", "icm_apt", "proto", "cic")
 
 
 @dataclass
 class ExplorationConfig:
-    """DVFB's exploration part (algorithm.md §7.3-§7.7, §14). Ignored by the FB agent."""
+    """DVFB's exploration part (algorithm.md §7.3-§7.7, §14)."""
 
+    reward: str = param("rnd_ce", "Intrinsic reward of Q_P: rnd_ce (RND + beta * CE, the paper's), or the Table 8 "
+                        "variants icm_apt, proto, cic (settings in the --icm-apt.*, --proto.*, --cic.* sections).",
+                        EXPLORATION_REWARDS)
     alpha: float = param(5.0, "Weight of Q_P in the actor objective (D2; authors' code: 50).")
     alpha_mode: str = param("constant", "constant alpha, or adaptive alpha_t = 2 mean(Q_M)/mean(Q_P).",
                             ("constant", "adaptive"))
@@ -54,34 +62,59 @@ class DVFBAgent(FBAgent):
     name = "dvfb"
 
     def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, exploration: ExplorationConfig,
-                 device: str | torch.device = "cpu", perf: PerfConfig | None = None):
+                 device: str | torch.device = "cpu", perf: PerfConfig | None = None,
+                 icm_apt: ICMAPTConfig | None = None, proto: ProtoConfig | None = None, cic: CICConfig | None = None):
         self.exploration = exploration
+        self.variant_configs = {"icm_apt": icm_apt or ICMAPTConfig(), "proto": proto or ProtoConfig(),
+                                "cic": cic or CICConfig()}
         super().__init__(obs_dim, action_dim, config, device, perf)
+
+    @classmethod
+    def from_config(cls, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> DVFBAgent:
+        return cls(obs_dim, action_dim, config.fb, config.exploration, device, config.perf,
+                   config.icm_apt, config.proto, config.cic)
 
     def _build_extra(self) -> None:
         c, e = self.config, self.exploration
         self.exploration_critic = TwinCritic(self.obs_dim, self.action_dim, c.z_dim, c.hidden_dim)
         self.exploration_critic_target = make_target(self.exploration_critic)
-        self.rnd = RNDReward(self.obs_dim, c.hidden_dim, e.rnd_rep_dim, e.rnd_obs_clip)
-        # The skill labels are B's outputs, so the encoders' skill dimension is z_dim (§4.6).
-        self.contrastive = (ContrastiveEncoders(self.obs_dim, c.z_dim, e.contrastive_hidden_dim)
-                            if e.use_ce else None)
+        self.rnd = self.contrastive = self.variant_reward = None
+        if e.reward == "rnd_ce":
+            self.rnd = RNDReward(self.obs_dim, c.hidden_dim, e.rnd_rep_dim, e.rnd_obs_clip, e.rnd_input)
+            # The skill labels are B's outputs, so the encoders' skill dimension is z_dim (§4.6).
+            self.contrastive = (ContrastiveEntropyReward(
+                self.obs_dim, c.z_dim, e.contrastive_hidden_dim, e.ce_k, e.ce_neighbours, e.ce_aggregate,
+                e.ce_temperature, e.nce_temperature, e.nce_exact_positive) if e.use_ce else None)
+        elif e.reward == "icm_apt":
+            self.variant_reward = ICMAPTReward(self.obs_dim, self.action_dim, self.variant_configs["icm_apt"])
+        elif e.reward == "proto":
+            self.variant_reward = ProtoReward(self.obs_dim, self.action_dim, self.variant_configs["proto"])
+        else:  # cic: its NCE pairs each transition with B's label, as DVFB's own CE module does
+            self.variant_reward = CICReward(self.obs_dim, c.z_dim, self.variant_configs["cic"])
+
+    def _reward_modules(self) -> dict[str, torch.nn.Module]:
+        """The intrinsic-reward modules, under the names of their optimisers."""
+        modules = {"rnd_optimizer": self.rnd, "contrastive_optimizer": self.contrastive,
+                   "exploration_reward_optimizer": self.variant_reward}
+        return {k: m for k, m in modules.items() if m is not None}
 
     def _build_extra_optimizers(self) -> None:
         c = self.config
         self.critic_optimizer = adam(self.exploration_critic.parameters(), c.lr, c.fused_adam)
-        self.rnd_optimizer = adam(self.rnd.predictor_parameters(), c.lr, c.fused_adam)
-        self.contrastive_optimizer = (adam(self.contrastive.parameters(), c.lr, c.fused_adam)
-                                      if self.contrastive is not None else None)
+        for name, module in self._reward_modules().items():
+            lr = c.lr if name != "exploration_reward_optimizer" else self.variant_configs[self.exploration.reward].lr
+            module.make_optimizer(lr, c.fused_adam)
 
     def target_pairs(self):
         return super().target_pairs() + [(self.exploration_critic_target, self.exploration_critic)]
 
     def update_networks(self):
-        nets = super().update_networks() + [self.exploration_critic, self.exploration_critic_target,
-                                            self.rnd.networks.predictor, self.rnd.networks.target]
+        nets = super().update_networks() + [self.exploration_critic, self.exploration_critic_target]
+        if self.rnd is not None:
+            nets += [self.rnd.networks.predictor, self.rnd.networks.target]
         if self.contrastive is not None:
-            nets += [self.contrastive.state_net, self.contrastive.transition_net, self.contrastive.skill_net]
+            enc = self.contrastive.encoders
+            nets += [enc.state_net, enc.transition_net, enc.skill_net]
         return nets
 
     def _actor_loss_frozen(self):
@@ -89,43 +122,40 @@ class DVFBAgent(FBAgent):
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         opts = super().optimizers()
-        opts.update(critic_optimizer=self.critic_optimizer, rnd_optimizer=self.rnd_optimizer)
-        if self.contrastive_optimizer is not None:
-            opts["contrastive_optimizer"] = self.contrastive_optimizer
+        opts["critic_optimizer"] = self.critic_optimizer
+        opts.update({k: m.optimizer for k, m in self._reward_modules().items()})
         return opts
+
+    def load_training_state(self, state: dict) -> None:
+        # Checkpoints written before the reward modules moved to dvfb.rewards kept the contrastive
+        # encoders directly under "contrastive."; they now sit under "contrastive.encoders.".
+        modules = state["modules"]
+        if any(k.startswith("contrastive.state_net.") for k in modules):
+            state = {**state, "modules": {k.replace("contrastive.", "contrastive.encoders.", 1)
+                                          if k.startswith("contrastive.") else k: v for k, v in modules.items()}}
+        super().load_training_state(state)
 
     # Intrinsic reward ----------------------------------------------------------------------------
     def intrinsic_reward(self, batch: Batch, labels: torch.Tensor, metrics: dict) -> torch.Tensor:
-        """RND step, NCE step, then ``r_rnd + beta * r_ce`` with the updated modules (§7.2 steps 3-6)."""
+        """Train the reward modules on the batch, then score it with the updated modules (§7.2 steps 3-6).
+
+        The modules read the skill of a row from ``batch.z``: here B's (detached) label of the
+        transition, as the CE and CIC encoders pair transitions with B (§4.6).
+        """
         e = self.exploration
         run = self.net_runner
-        rnd_obs = batch.next_obs if e.rnd_input == "next_obs" else batch.obs
-        normed, rnd_target = self.rnd.prepare(rnd_obs, run)
-        rnd_loss = self.rnd.loss(normed, rnd_target, run)
-        self.rnd_optimizer.zero_grad(set_to_none=True)
-        rnd_loss.backward()
-        self.rnd_optimizer.step()
-        metrics["rnd_loss"] = rnd_loss.detach()
-
-        if self.contrastive is not None:
-            key = self.contrastive.key(batch.obs, batch.next_obs, run)
-            query = run(self.contrastive.skill_net, labels)
-            loss = nce_loss(query, key, e.nce_temperature, e.nce_exact_positive)
-            self.contrastive_optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            self.contrastive_optimizer.step()
-            metrics["nce_loss"] = loss.detach()
-
-        reward = self.rnd.reward(normed, rnd_target, run)
-        metrics["rnd_reward"] = reward.mean()
-        if self.contrastive is not None and e.beta != 0:
-            with torch.no_grad():  # the just-updated encoders (§7.2 step 6)
-                key = self.contrastive.key(batch.obs, batch.next_obs, run)
-                query = run(self.contrastive.skill_net, labels)
-                ce = contrastive_entropy_reward(key, query, e.ce_k, e.ce_neighbours, e.ce_aggregate,
-                                                e.ce_temperature)
-            metrics["ce_reward"] = ce.mean()
-            reward = reward + e.beta * ce
+        labelled = dataclasses.replace(batch, z=labels)
+        if self.variant_reward is not None:
+            reward = self.variant_reward.update_and_score(labelled, metrics, run)
+        else:
+            reward = self.rnd.update_and_score(labelled, metrics, run)
+            if self.contrastive is not None:
+                metrics.update(self.contrastive.update(labelled, run))
+                if e.beta != 0:
+                    with torch.no_grad():  # the just-updated encoders (§7.2 step 6)
+                        ce = self.contrastive.score(labelled, run)
+                    metrics["ce_reward"] = ce.mean()
+                    reward = reward + e.beta * ce
         metrics["intrinsic_reward"] = reward.mean()
         return reward
 
@@ -137,7 +167,7 @@ class DVFBAgent(FBAgent):
             next_q = run(self.exploration_critic_target, batch.next_obs, z, next_action).amin(0)  # (N, 1)
             target = reward + batch.discount * next_q
         q = run(self.exploration_critic, batch.obs, z, batch.action)  # (2, N, 1)
-        return (q - target).pow(2).mean(dim=(1, 2)).sum()
+        return twin_td_loss(q, target)
 
     def _explore(self, batch, z, next_action, labels, metrics) -> None:
         reward = self.intrinsic_reward(batch, labels, metrics)
@@ -156,3 +186,31 @@ class DVFBAgent(FBAgent):
             alpha = e.alpha
         metrics["exploration_value"] = exploration_value.detach().mean()
         return alpha * exploration_value
+
+
+def dvfb_label(run, finetune) -> str:
+    """``dvfb``, ``dvfb_wo_ce`` (paper Table 3) or ``dvfb_<reward>`` (Table 8), plus the FB family's
+    fine-tuning ablation suffixes."""
+    exploration = config_field(run, "exploration") or {}
+    reward = config_field(exploration, "reward", "rnd_ce")
+    if reward != "rnd_ce":
+        name = f"dvfb_{reward}"
+    elif not config_field(exploration, "use_ce", True):
+        name = "dvfb_wo_ce"
+    else:
+        name = "dvfb"
+    return fb_finetune_label(name, finetune)
+
+
+register(AgentSpec(
+    name="dvfb", agent_cls=DVFBAgent, family="forward-backward",
+    summary="DVFB: FB plus an exploration critic on RND + contrastive entropy, actor on Q_M + alpha Q_P",
+    sections={"fb": FBConfig, "exploration": ExplorationConfig, "icm_apt": ICMAPTConfig, "proto": ProtoConfig,
+              "cic": CICConfig},
+    zero_shot="reward_inference", inference=InferenceConfig, finetune=FinetuneConfig, finetuner=DualValueFinetuner,
+    presets={"small": {"fb": FB_SMALL, "exploration": {"contrastive_hidden_dim": 256, "rnd_rep_dim": 128},
+                       "icm_apt": {"hidden_dim": 256, "rep_dim": 128},
+                       "cic": {"hidden_dim": 256}},
+             "code": {"fb": {"backward_input": "code_exact"}, "exploration": {"alpha": 50.0, "rnd_input": "obs"},
+                      "finetune": {"qf_coef": 50.0, "eta": 1.0}}},
+    label=dvfb_label, column=0))

@@ -22,21 +22,19 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import nn
 
+from dvfb.agents.base import Agent, ReplayNeeds
 from dvfb.agents.perf import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.config import param
 from dvfb.nets import (
-    ACTION_EPS,
+    adam,
     Actor,
     BackwardMap,
     ForwardMap,
-    HostActor,
     make_target,
     project_to_sphere,
-    rollout_action,
     sample_z_prior,
     skill_values,
     training_action,
@@ -73,17 +71,6 @@ class FBConfig:
     cov_ridge: float = param(0.0, "Ridge added to Cov(B) before solving Cov x = z (D19).")
     fused_adam: bool = param(True, "Use torch's fused (single-kernel) Adam where available; false = "
                              "the multi-tensor (foreach) implementation. Same math either way.")
-
-
-def adam(params, lr: float, fused: bool) -> torch.optim.Adam:
-    """Adam with default betas/eps and no weight decay (§3.6); fused when asked and possible."""
-    params = list(params)
-    if fused:
-        try:
-            return torch.optim.Adam(params, lr=lr, fused=True)
-        except (RuntimeError, TypeError):  # pragma: no cover - backend without fused Adam
-            pass
-    return torch.optim.Adam(params, lr=lr, foreach=True)
 
 
 def offdiag_mean(matrix: torch.Tensor) -> torch.Tensor:
@@ -136,10 +123,14 @@ def infer_z_from_rewards(features: torch.Tensor, rewards: torch.Tensor,
     return project_to_sphere(z_raw), info
 
 
-class FBAgent(nn.Module):
+class FBAgent(Agent):
     """Online FB: reward-free pre-training of F, B and pi(s, z) (algorithm.md §7 with alpha = 0)."""
 
     name = "fb"
+
+    @classmethod
+    def from_config(cls, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> FBAgent:
+        return cls(obs_dim, action_dim, config.fb, device, config.perf)
 
     def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, device: str | torch.device = "cpu",
                  perf: PerfConfig | None = None):
@@ -170,7 +161,6 @@ class FBAgent(nn.Module):
         self._actor_frozen_params = [p for m in self._actor_loss_frozen() for p in m.parameters()]
         self.net_runner = NetRunner(perf, self.device)
         self.net_runner.compile(self.update_networks())
-        self._host_actor: HostActor | None = None  # built on the first CPU act()
 
     # Hooks for subclasses -------------------------------------------------------------------
     def _build_extra(self) -> None:
@@ -200,36 +190,24 @@ class FBAgent(nn.Module):
         """Networks the actor loss differentiates through, but only with respect to the action."""
         return [self.forward_map]
 
-    # Acting ------------------------------------------------------------------------------------
+    # Skills, replay and acting (the Agent interface) -------------------------------------------
+    @property
+    def skill_dim(self) -> int:
+        return self.config.z_dim
+
     def sample_z(self, n: int = 1) -> torch.Tensor:
         return sample_z_prior(n, self.config.z_dim, self.device)
 
-    def act(self, obs: np.ndarray, z: torch.Tensor, explore: bool) -> np.ndarray:
-        """One action for one observation: a rollout sample if ``explore``, else the mean (§3.3).
+    def sample_skill(self, n: int = 1) -> torch.Tensor:
+        return self.sample_z(n)
 
-        Runs in float32 whatever ``perf`` says (batch 1: per-op overhead, not FLOPs). On the CPU
-        the mean comes from :class:`HostActor` (numpy on the actor's own parameter storage, 1.6-3x
-        faster than the torch modules at batch 1; bench/README.md); the exploration noise is
-        still drawn from torch's generator, so the random stream is the same on every path.
-        """
-        if self.device.type != "cpu":
-            return self._act_torch(obs, z, explore)
-        if self._host_actor is None or self._host_actor.actor is not self.actor:
-            self._host_actor = HostActor(self.actor)  # first call, or the actor module was replaced
-        action = self._host_actor(obs, z.detach().numpy())
-        if explore:
-            # rollout_action's math: clamp(mu + sigma * eps), eps ~ N(0, 1) from torch's stream.
-            action += torch.randn(1, self.action_dim).numpy()[0] * np.float32(self.config.stddev)
-            np.minimum(action, np.float32(1 - ACTION_EPS), out=action)
-            np.maximum(action, np.float32(-1 + ACTION_EPS), out=action)
-        return action
+    @property
+    def policy_stddev(self) -> float:
+        return self.config.stddev
 
-    @torch.inference_mode()
-    def _act_torch(self, obs: np.ndarray, z: torch.Tensor, explore: bool) -> np.ndarray:
-        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
-        mean = self.actor(obs_t, z.reshape(1, -1))
-        action = rollout_action(mean, self.config.stddev) if explore else mean
-        return action[0].cpu().numpy()
+    def replay_needs(self) -> ReplayNeeds:
+        return ReplayNeeds(self.config.batch_size, self.config.discount, nstep=1,
+                           need_future=self.config.backward_input == "code_exact")
 
     # Backward-map inputs (D1) -----------------------------------------------------------------
     def backward_inputs(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor]:
@@ -388,6 +366,12 @@ class FBAgent(nn.Module):
             goal = torch.cat([goal, goal], dim=-1)  # a goal "transition" that stays at the goal
         return project_to_sphere(self.backward_map(goal))[0]
 
+    def infer_skill(self, obs, next_obs, reward, inference) -> tuple[torch.Tensor, dict]:
+        return self.infer_z(obs, next_obs, reward, inference.reward_quantile)
+
+    def skill_from_goal(self, goal_obs: torch.Tensor) -> torch.Tensor:
+        return self.infer_z_from_goal(goal_obs)
+
     @torch.no_grad()
     def skill_value(self, obs: torch.Tensor, action: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """``Q_M = min_k F_k(s, a, z) . z`` for evaluation and analysis."""
@@ -403,12 +387,33 @@ class FBAgent(nn.Module):
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         return {"fb_optimizer": self.fb_optimizer, "actor_optimizer": self.actor_optimizer}
 
-    def training_state(self) -> dict:
-        """Networks, running statistics and optimiser states (for resume)."""
-        return {"modules": self.state_dict(),
-                "optimizers": {k: o.state_dict() for k, o in self.optimizers().items()}}
 
-    def load_training_state(self, state: dict) -> None:
-        self.load_state_dict(state["modules"])
-        for k, o in self.optimizers().items():
-            o.load_state_dict(state["optimizers"][k])
+# Registration (beside the agent). The fine-tuner module imports this one, so it is imported here,
+# after FBAgent exists; dvfb.agents imports this module first.
+from dvfb.agents.finetune import DualValueFinetuner, FinetuneConfig  # noqa: E402
+from dvfb.agents.protocols import InferenceConfig  # noqa: E402
+from dvfb.agents.registry import AgentSpec, config_field, register  # noqa: E402
+
+
+def fb_finetune_label(name: str, finetune) -> str:
+    """The fine-tuning ablations of the FB family: ``_wo_svf`` (eta = 0), ``_wo_map`` (no mapping)."""
+    if finetune is not None:
+        if float(config_field(finetune, "eta", 0.5)) == 0.0:
+            name += "_wo_svf"
+        if not config_field(finetune, "reward_mapping", True):
+            name += "_wo_map"
+    return name
+
+
+# Widths and batch of the CPU-sized preset (docs/results/cpu_experiment.md): the method's constants
+# are kept, only the networks shrink so that one update costs tens of milliseconds on 2 cores.
+FB_SMALL = {"hidden_dim": 256, "feature_dim": 128, "backward_hidden_dim": 256, "batch_size": 256}
+
+register(AgentSpec(
+    name="fb", agent_cls=FBAgent, family="forward-backward",
+    summary="online FB: successor measures F.B, actor maximising F(s, a, z).z (Touati et al.)",
+    sections={"fb": FBConfig}, zero_shot="reward_inference", inference=InferenceConfig,
+    finetune=FinetuneConfig, finetuner=DualValueFinetuner,
+    presets={"small": {"fb": FB_SMALL}, "code": {"fb": {"backward_input": "code_exact"},
+                                                 "finetune": {"qf_coef": 50.0, "eta": 1.0}}},
+    label=lambda run, finetune: fb_finetune_label("fb", finetune), column=1))

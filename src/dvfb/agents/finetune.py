@@ -13,22 +13,19 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from dvfb.agents.fb import FBAgent, adam, implicit_reward
+from dvfb.agents.base import ReplayNeeds
+from dvfb.agents.fb import FBAgent, implicit_reward
+from dvfb.agents.protocols import FinetuneProtocol
 from dvfb.config import param
-from dvfb.nets import RunningMeanStd, TwinCritic, freeze_, make_target, skill_values, soft_update_, training_action
+from dvfb.nets import (RunningMeanStd, TwinCritic, adam, freeze_, make_target, skill_values, soft_update_,
+                       training_action, twin_td_loss)
 from dvfb.replay import Batch
 
 
 @dataclass
-class FinetuneConfig:
-    """Fine-tuning protocol and the dual-value options (algorithm.md §9, §12, §14)."""
+class FinetuneConfig(FinetuneProtocol):
+    """Dual-value fine-tuning of the FB family: the protocol plus the options of §9, §12, §14."""
 
-    frames: int = param(100_000, "Fine-tuning environment steps (the inference steps are not counted).")
-    eval_every: int = param(10_000, "Evaluate every this many fine-tuning steps (and at 0 and the end).")
-    eval_episodes: int = param(50, "Mean-action episodes per evaluation.")
-    seed_frames: int = param(4000, "Steps before the first update (policy actions, no uniform phase).")
-    update_every: int = param(2, "One update every this many steps.")
-    replay_capacity: int = param(1_000_000, "Fine-tuning replay capacity in transitions.")
     eta: float = param(0.5, "Weight of the skill value Q_M in the actor objective; 0 = w/o SVF (D3).")
     eta_mode: str = param("constant", "constant eta, or adaptive eta_i = Q_F,i / Q_M,i.", ("constant", "adaptive"))
     qf_coef: float = param(1.0, "Weight of Q_F in the actor objective (authors' code: 50 with eta = 1).")
@@ -38,11 +35,15 @@ class FinetuneConfig:
     reward_map_clip: float | None = param(None, "Clip mapped rewards to [-c, c]; none = no clip.")
     cov_ridge: float = param(0.0, "Ridge added to Cov(B) in the implicit reward.")
     keep_inference_data: bool = param(False, "Seed the fine-tuning buffer with the inference transitions (D12).")
-    checkpoint_every: int = param(10_000, "Write a resume checkpoint every this many steps (at episode ends).")
 
 
 class DualValueFinetuner(nn.Module):
-    """Q_F training and the dual-value actor on top of a pre-trained FB-family agent (§9.2-§9.5)."""
+    """Q_F training and the dual-value actor on top of a pre-trained FB-family agent (§9.2-§9.5).
+
+    Rollouts use ``pi(s, z_r)`` from the first step (no uniform phase, §9.1).
+    """
+
+    uniform_seed_actions = False
 
     def __init__(self, agent: FBAgent, z: torch.Tensor, config: FinetuneConfig):
         super().__init__()
@@ -58,6 +59,10 @@ class DualValueFinetuner(nn.Module):
         self.critic_optimizer = adam(self.task_critic.parameters(), fb.lr, fb.fused_adam)
         # A fresh actor optimiser (§3.6: the authors do not carry the pre-training state over).
         self.actor_optimizer = adam(agent.actor.parameters(), fb.lr, fb.fused_adam)
+
+    def replay_needs(self) -> ReplayNeeds:
+        fb = self.agent.config
+        return ReplayNeeds(fb.batch_size, fb.discount)
 
     def mapped_reward(self, batch: Batch, metrics: dict) -> torch.Tensor:
         """``r_f = r * mu_fb / (mu_t + eps)`` with running means (§9.4 steps 1-3). ``(N, 1)``."""
@@ -93,7 +98,7 @@ class DualValueFinetuner(nn.Module):
             next_q = self.task_critic_target(batch.next_obs, z, next_action).amin(0)
             target = reward + batch.discount * next_q
         q = self.task_critic(batch.obs, z, batch.action)
-        critic_loss = (q - target).pow(2).mean(dim=(1, 2)).sum()
+        critic_loss = twin_td_loss(q, target)
         self.critic_optimizer.zero_grad(set_to_none=True)
         critic_loss.backward()
         self.critic_optimizer.step()

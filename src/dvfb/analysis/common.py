@@ -1,8 +1,8 @@
 """Run discovery, method names and result records shared by the reports and analyses.
 
-* :func:`method_name` -- the one place that turns run configs into a method label (``dvfb``,
-  ``dvfb_wo_ce``, ``fb``, with ``_wo_svf`` / ``_wo_map`` for the fine-tuning ablations of
-  algorithm.md §9.6 and the paper's Table 3).
+* :func:`method_name` -- the one place that turns run configs into a method label, by asking the
+  agent registry (``dvfb``, ``dvfb_wo_ce``, ``fb``, ``rnd``, ..., with ``_wo_svf`` / ``_wo_map``
+  for the FB family's fine-tuning ablations).
 * :func:`discover_runs` -- finds pre-training runs (a ``config.json`` holding a
   :class:`PretrainConfig`) and fine-tuning runs (a ``config.json`` holding a
   :class:`FinetuneRunConfig`) under any mix of run directories and parent directories.
@@ -38,24 +38,22 @@ class AnalysisError(DvfbError):
 # method names
 
 
-def method_name(agent: str, exploration: Any | None = None, finetune: Any | None = None) -> str:
-    """The method label of a run, from its configs (the only place this naming is decided).
+def method_name(run_config: Any, finetune: Any | None = None) -> str:
+    """The method label of a run, from its configs (dataclasses or their dicts).
 
-    ``agent`` is the run config's ``agent`` field. ``exploration`` is the pre-training run's
-    :class:`ExplorationConfig` (or its dict): a dvfb run with ``use_ce = false`` is ``dvfb_wo_ce``
-    (paper Table 3, "w/o CE"). ``finetune`` is a fine-tuning run's :class:`FinetuneConfig` (or its
-    dict): ``eta == 0`` appends ``_wo_svf`` and ``reward_mapping = false`` appends ``_wo_map``
-    (algorithm.md §9.6).
+    The registry decides: each method's :class:`~dvfb.agents.registry.AgentSpec` names its variants
+    (DVFB: ``dvfb_wo_ce`` for ``use_ce = false``, ``dvfb_<reward>`` for the Table 8 rewards; the FB
+    family's fine-tuning ablations append ``_wo_svf`` and ``_wo_map``). ``run_config`` is the
+    pre-training run's config; ``finetune`` a fine-tuning run's ``finetune`` section.
     """
-    name = str(agent)
-    if agent == "dvfb" and exploration is not None and not _field(exploration, "use_ce", True):
-        name = "dvfb_wo_ce"
-    if finetune is not None:
-        if float(_field(finetune, "eta", 0.5)) == 0.0:
-            name += "_wo_svf"
-        if not _field(finetune, "reward_mapping", True):
-            name += "_wo_map"
-    return name
+    from dvfb.agents import get_spec
+
+    agent = _field(run_config, "agent", None)
+    try:
+        spec = get_spec(agent)
+    except DvfbError:
+        return str(agent)
+    return spec.method_label(run_config, finetune)
 
 
 def _field(config: Any, name: str, default: Any) -> Any:
@@ -65,14 +63,19 @@ def _field(config: Any, name: str, default: Any) -> Any:
 
 
 def method_sort_key(name: str) -> tuple:
-    """Column order of the tables: dvfb variants, then fb variants, then others, random last."""
+    """Column order of the tables: registered methods by their ``column`` (then registry order),
+    each followed by its variants, then unknown names, random last."""
+    from dvfb.agents import AGENTS
+
     if name == "random":
-        return (3, name)
-    if name.startswith("dvfb"):
-        return (0, len(name), name)
-    if name.startswith("fb"):
-        return (1, len(name), name)
-    return (2, name)
+        return (3, 0, 0, 0, name)
+    names = list(AGENTS)
+    # The longest registered name the label starts with: "dvfb_wo_ce" belongs to "dvfb".
+    owners = [n for n in names if name == n or name.startswith(n + "_")]
+    if owners:
+        owner = max(owners, key=len)
+        return (0, AGENTS[owner].column, names.index(owner), len(name), name)
+    return (2, 0, 0, 0, name)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -86,7 +89,7 @@ class PretrainRun:
 
     @property
     def method(self) -> str:
-        return method_name(self.config.agent, self.config.exploration)
+        return method_name(self.config)
 
 
 @dataclass
@@ -97,8 +100,9 @@ class FinetuneRun:
 
     @property
     def method(self) -> str:
-        exploration = self.parent.config.exploration if self.parent is not None else None
-        return method_name(self.config.agent, exploration, self.config.finetune)
+        # The pre-training run's config names the variant (e.g. w/o CE); without it, the agent.
+        pretrain = self.parent.config if self.parent is not None else {"agent": self.config.agent}
+        return method_name(pretrain, self.config.finetune)
 
     @property
     def pretrain_seed(self) -> int | None:
@@ -118,23 +122,22 @@ def _config_kind(path: Path) -> str | None:
         return None
     if "pretrain_run" in data and "task" in data:
         return "finetune"
-    if "fb" in data and "exploration" in data and "domain" in data:
+    if isinstance(data.get("agent"), str) and "domain" in data and "frames" in data:
         return "pretrain"
     return None
 
 
 def _load_pretrain(path: Path) -> PretrainRun:
-    from dvfb.runs import RunDir
-    from dvfb.workflows.config import PretrainConfig
+    from dvfb.workflows.config import load_run_config
 
-    return PretrainRun(path, RunDir(path).load_config(PretrainConfig))
+    return PretrainRun(path, load_run_config(path / "config.json"))
 
 
 def _load_finetune(path: Path, parent: PretrainRun | None) -> FinetuneRun:
     from dvfb.runs import RunDir
-    from dvfb.workflows.finetune import FinetuneRunConfig
+    from dvfb.workflows.finetune import load_finetune_run_config
 
-    config = RunDir(path).load_config(FinetuneRunConfig)
+    config = load_finetune_run_config(RunDir(path))
     if parent is None and config.pretrain_run:
         # A fine-tuning run given on its own: its pre-training run tells whether CE was used.
         candidate = Path(config.pretrain_run)

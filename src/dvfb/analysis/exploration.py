@@ -116,7 +116,9 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
     seed = config.seed if seed is None else seed
     seed_everything(seed)
     started = time.time()
-    zs = agent.sample_z(skills)
+    zs = agent.sample_skill(skills)
+    if zs is None:
+        raise AnalysisError(f"analyze-exploration compares skills; {config.agent!r} has a single policy")
     env = envs.make(config.domain, seed=seed, reward_free=True)
     physics = env.unwrapped.physics
     positions = np.full((skills, repeats, steps + 1, len(coords.names)), np.nan)

@@ -1,56 +1,53 @@
 """The typed run configurations and the presets (``paper``, ``small``, ``code``).
 
-One :class:`PretrainConfig` describes a pre-training run completely and is saved as
-``config.json`` in its run directory. It nests the agent's :class:`FBConfig`, DVFB's
-:class:`ExplorationConfig`, the execution options of the updates (:class:`PerfConfig`: precision,
-compilation), and the defaults of the later phases (:class:`InferenceConfig`,
-:class:`FinetuneConfig`) so that zero-shot and fine-tuning of a run use the preset it was trained
-with unless told otherwise.
+One run config describes a pre-training run completely and is saved as ``config.json`` in its run
+directory. Its top-level fields (:class:`PretrainConfig`) are the same for every method; the
+method adds its own typed sections from the registry (``fb`` and ``exploration`` for DVFB,
+``ddpg`` and ``rnd`` for RND, ...), and its family's zero-shot (``inference``) and fine-tuning
+(``finetune``) configs, so that zero-shot and fine-tuning of a run use the preset it was trained
+with unless told otherwise. :func:`run_config_class` builds that dataclass once per method, so
+loading stays strict: unknown keys and wrong types are errors.
 
 Presets:
 
-* ``paper`` -- algorithm.md's [R] defaults (hidden 1024, batch 1024, alpha 5, eta 0.5, 2M frames).
-* ``code``  -- the authors' published constants (§14): B on the code's pairings, alpha 50, RND on
-  s_t, fine-tuning objective ``50 Q_F + Q_M``.
-* ``small`` -- a CPU-sized preset: the paper's method and constants with narrower networks and
-  smaller batches (see docs/results/ for the measurements that justify it).
+* ``paper`` -- the spec's defaults (hidden 1024, batch 1024, alpha 5, eta 0.5, 2M frames).
+* ``code``  -- the authors' published constants where the method has them (DVFB/FB: B on the
+  code's pairings, alpha 50, RND on s_t, fine-tuning objective ``50 Q_F + Q_M``).
+* ``small`` -- a CPU-sized preset: each method's constants with narrower networks and smaller
+  batches (see docs/results/ for the measurements that justify it).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import torch
 
-from dvfb.agents import AGENTS
-from dvfb.agents.dvfb import ExplorationConfig
-from dvfb.agents.fb import FBConfig
-from dvfb.agents.finetune import FinetuneConfig
+from dvfb.agents import get_spec
 from dvfb.agents.perf import PerfConfig
-from dvfb.config import merge, param, replace
+from dvfb.agents.protocols import InferenceConfig
+from dvfb.config import from_dict, merge, param, replace
 from dvfb.errors import ConfigError
+from dvfb.runs import read_json
 
 PRESETS = ("small", "paper", "code")
 DEVICES = ("auto", "cpu", "cuda")
-
-
-@dataclass
-class InferenceConfig:
-    """Zero-shot task inference and evaluation (algorithm.md §8)."""
-
-    steps: int = param(10_000, "Reward-labelled environment steps collected in the task.")
-    random_action_steps: int = param(4000, "Of those, the first steps use uniform actions.")
-    samples: int = param(10_000, "Transitions drawn from the inference data to infer z_r.")
-    with_replacement: bool = param(True, "Draw the inference samples with replacement (authors' code).")
-    reward_quantile: float | None = param(0.99, "Keep samples with reward >= this quantile; none = no filter.")
-    eval_episodes: int = param(50, "Mean-action evaluation episodes with the inferred z_r.")
+DEFAULT_AGENT = "dvfb"
 
 
 @dataclass
 class PretrainConfig:
-    """A reward-free pre-training run (algorithm.md §7) and the defaults of its later phases."""
+    """A reward-free pre-training run (algorithm.md §7): the fields every method shares.
 
-    agent: str = param("dvfb", "Method: dvfb or online fb.", AGENTS)
+    A run's config is an instance of :func:`run_config_class` ``(agent)``, a subclass with the
+    method's sections and its family's ``inference`` and ``finetune`` configs.
+    """
+
+    agent: str = param(DEFAULT_AGENT, "Method (see `dvfb agents`).")
     domain: str = param("walker", "Domain; pre-training uses its reward-free task (tasks.md §5).")
     preset: str = param("paper", "Preset the config was built from.", PRESETS)
     frames: int = param(2_000_000, "Pre-training environment steps.")
@@ -59,46 +56,83 @@ class PretrainConfig:
     torch_threads: int = param(0, "torch.set_num_threads; 0 keeps torch's default.")
     seed_frames: int = param(4000, "Uniform-action steps before the first update.")
     update_every: int = param(2, "One gradient update every this many steps.")
-    update_z_every: int = param(300, "Resample the rollout z when the step counter is a multiple of this.")
+    update_z_every: int = param(300, "Methods with skills: resample the rollout skill when the step counter is a "
+                                "multiple of this (and at every episode start).")
     replay_capacity: int = param(1_000_000, "Replay capacity in transitions.")
     snapshot_frames: list[int] = param([100_000, 500_000, 1_000_000, 2_000_000],
                                        "Frames at which agent snapshots are kept (the final frame always is).")
     checkpoint_every: int = param(100_000, "Write a resume checkpoint at the first episode end after this many steps.")
     log_every: int = param(1000, "Read metrics back from the device and log them every this many steps.")
-    fb: FBConfig = field(default_factory=FBConfig, metadata={"help": "FB representation."})
-    exploration: ExplorationConfig = field(default_factory=ExplorationConfig,
-                                           metadata={"help": "DVFB exploration (ignored by fb)."})
-    inference: InferenceConfig = field(default_factory=InferenceConfig, metadata={"help": "Zero-shot."})
-    finetune: FinetuneConfig = field(default_factory=FinetuneConfig, metadata={"help": "Fine-tuning."})
     perf: PerfConfig = field(default_factory=PerfConfig,
                              metadata={"help": "How the pre-training updates execute (precision, compilation)."})
 
 
-def preset_config(preset: str, **top_level) -> PretrainConfig:
-    """The config of a preset, with top-level fields (agent, domain, frames, seed, ...) applied."""
+@functools.cache
+def run_config_class(agent: str) -> type:
+    """The run-config dataclass of a registered method: :class:`PretrainConfig` plus the method's
+    sections and its family's ``inference`` and ``finetune`` configs."""
+    spec = get_spec(agent)
+    fields = [(name, cls, field(default_factory=cls, metadata={"help": (cls.__doc__ or name).splitlines()[0]}))
+              for name, cls in spec.sections.items()]
+    fields += [("inference", spec.inference, field(default_factory=spec.inference, metadata={"help": "Zero-shot."})),
+               ("finetune", spec.finetune, field(default_factory=spec.finetune, metadata={"help": "Fine-tuning."}))]
+    name = "".join(part.capitalize() for part in agent.split("_")) + "RunConfig"
+    cls = dataclasses.make_dataclass(name, fields, bases=(PretrainConfig,))
+    cls.__module__ = __name__
+    cls.__doc__ = f"The run config of {agent!r}: {spec.summary}."
+    return cls
+
+
+def agent_sections(config: Any) -> dict:
+    """The method-specific sections of a run config (or its dict), the part a snapshot must match."""
+    spec = get_spec(config["agent"] if isinstance(config, dict) else config.agent)
+    if isinstance(config, dict):
+        return {name: config.get(name) for name in spec.sections}
+    return {name: dataclasses.asdict(getattr(config, name)) for name in spec.sections}
+
+
+# Runs written before the agent registry stored an ``exploration`` section in every config, also
+# for online FB, which ignored it; such a section of an FB run is dropped on reading.
+def _migrate(data: dict) -> dict:
+    if data.get("agent") == "fb" and "exploration" in data:
+        data = {k: v for k, v in data.items() if k != "exploration"}
+    return data
+
+
+def run_config_from_dict(data: dict, source: str = "config") -> PretrainConfig:
+    """A run config from its JSON dict, strictly (unknown keys and wrong types are errors)."""
+    if not isinstance(data, dict) or not isinstance(data.get("agent"), str):
+        raise ConfigError(f"{source}: not a dvfb run config (no 'agent' field)")
+    return from_dict(run_config_class(data["agent"]), _migrate(data))
+
+
+def load_run_config(path: str | Path) -> PretrainConfig:
+    """Read a pre-training run's ``config.json``."""
+    return run_config_from_dict(read_json(Path(path), ConfigError), str(path))
+
+
+def preset_config(preset: str, agent: str = DEFAULT_AGENT, **top_level) -> PretrainConfig:
+    """The config of a preset for a method, with top-level fields (domain, frames, seed, ...) applied."""
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    config = PretrainConfig(preset=preset)
-    if preset == "code":
-        config = merge(config, {
-            "fb": {"backward_input": "code_exact"},
-            "exploration": {"alpha": 50.0, "rnd_input": "obs"},
-            "finetune": {"qf_coef": 50.0, "eta": 1.0},
-        })
-    elif preset == "small":
+    spec = get_spec(agent)
+    config = run_config_class(agent)(agent=agent, preset=preset)
+    if spec.defaults:
+        config = merge(config, spec.defaults)
+    if preset == "small":
         config = merge(config, SMALL_PRESET)
+    config = merge(config, spec.presets.get(preset, {}))
     return replace(config, **top_level) if top_level else config
 
 
-# The small preset keeps every constant of the method and shrinks widths and batch so that one
-# update costs tens of milliseconds on two CPU cores (measured in docs/results/cpu_experiment.md).
+# The small preset keeps every constant of a method and shrinks widths and batch (each method's
+# own part is in its AgentSpec.presets) so that one update costs tens of milliseconds on two CPU
+# cores (measured in docs/results/cpu_experiment.md). These are the run-level fields.
 SMALL_PRESET: dict = {
     "frames": 100_000,
     "replay_capacity": 1_000_000,
     "snapshot_frames": [],
     "checkpoint_every": 20_000,
-    "fb": {"hidden_dim": 256, "feature_dim": 128, "backward_hidden_dim": 256, "batch_size": 256},
-    "exploration": {"contrastive_hidden_dim": 256, "rnd_rep_dim": 128},
     "inference": {"eval_episodes": 10},
     "finetune": {"frames": 20_000, "eval_every": 5_000, "eval_episodes": 5, "seed_frames": 2000},
 }
@@ -110,3 +144,7 @@ def resolve_device(device: str) -> torch.device:
     if device == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device 'cuda' was requested but torch sees no CUDA device; use --device cpu or auto")
     return torch.device(device)
+
+
+__all__ = ["DEVICES", "InferenceConfig", "PRESETS", "PretrainConfig", "agent_sections", "load_run_config",
+           "preset_config", "resolve_device", "run_config_class", "run_config_from_dict"]

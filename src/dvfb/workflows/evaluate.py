@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from dvfb.agents import FBAgent
+from dvfb.agents import Agent
 from dvfb.replay import ReplayBuffer
 
 
-def evaluate_policy(agent: FBAgent, env, z: torch.Tensor, episodes: int) -> list[float]:
-    """Undiscounted returns of ``episodes`` mean-action episodes with a fixed z (§8.3)."""
+def evaluate_policy(agent: Agent, env, z: torch.Tensor | None, episodes: int) -> list[float]:
+    """Undiscounted returns of ``episodes`` mean-action episodes with a fixed skill z (§8.3), or
+    without one for methods that have none (``z = None``)."""
     returns = []
     for _ in range(episodes):
         obs, _ = env.reset()
@@ -23,12 +24,12 @@ def evaluate_policy(agent: FBAgent, env, z: torch.Tensor, episodes: int) -> list
     return returns
 
 
-def collect_inference_data(agent: FBAgent, env, steps: int, random_action_steps: int,
+def collect_inference_data(agent: Agent, env, steps: int, random_action_steps: int,
                            rng: np.random.Generator, max_episode_length: int = 1000) -> ReplayBuffer:
     """``steps`` reward-labelled steps in the task (§8.1).
 
-    A new z ~ p(z) at every step; uniform actions for the first ``random_action_steps`` steps,
-    then rollout samples of ``pi(s, z)``.
+    A new skill from the method's prior at every step; uniform actions for the first
+    ``random_action_steps`` steps, then rollout samples of ``pi(s, skill)``.
     """
     obs_dim = env.observation_space.shape[0]
     action_dim = env.action_space.shape[0]
@@ -40,7 +41,7 @@ def collect_inference_data(agent: FBAgent, env, steps: int, random_action_steps:
         if done:
             obs, _ = env.reset()
             buffer.start_episode(obs)
-        z = agent.sample_z(1)[0]
+        z = agent.sample_skill(1)[0]
         if step < random_action_steps:
             action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
         else:

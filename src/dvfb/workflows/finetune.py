@@ -1,9 +1,12 @@
-"""Dual-value fine-tuning of a pre-trained run on a task (algorithm.md §9).
+"""Fine-tuning of a pre-trained run on a task (algorithm.md §9; docs/methods.md, "Protocols").
 
-Protocol: load the snapshot's actor, F and B; collect the inference steps and infer z_r (§8.1-8.2);
-evaluate zero-shot (the curve's point at 0 frames); then ``finetune.frames`` steps of rollouts
-with ``pi(s, z_r)`` (no uniform phase), one :class:`DualValueFinetuner` update every
-``update_every`` steps after ``seed_frames``, and an evaluation every ``eval_every`` steps.
+Protocol: load the snapshot; obtain the task's skill by the family's zero-shot strategy (FB family:
+collect the inference steps and infer z_r, §8.1-8.2; methods without skills: none); evaluate
+zero-shot (the curve's point at 0 frames); build the family's fine-tuner (dual-value for the FB
+family, URLB's for the DDPG agents); then ``finetune.frames`` steps of rollouts with
+``pi(s, skill)`` (uniform actions during ``seed_frames`` where the fine-tuner asks for them), one
+fine-tuner update every ``update_every`` steps after ``seed_frames``, and an evaluation every
+``eval_every`` steps.
 
 Each fine-tuning run has its own directory ``RUN/finetune/<name>/`` (default name: the task) with
 its config, metrics, resume checkpoints and ``curve.json`` (frames, mean and std return).
@@ -11,6 +14,8 @@ its config, metrics, resume checkpoints and ``curve.json`` (frames, mean and std
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,11 +24,11 @@ import numpy as np
 import torch
 
 from dvfb import envs
-from dvfb.agents.finetune import DualValueFinetuner, FinetuneConfig
-from dvfb.config import merge, param, to_dict
+from dvfb.agents import get_spec
+from dvfb.config import from_dict, merge, param, to_dict
 from dvfb.errors import CheckpointError, ConfigError
 from dvfb.replay import ReplayBuffer
-from dvfb.runs import MetricsLogger, RunDir, load_checkpoint, save_checkpoint, write_json_atomic
+from dvfb.runs import MetricsLogger, RunDir, load_checkpoint, read_json, save_checkpoint, write_json_atomic
 from dvfb.workflows.common import (
     MetricWindow,
     check_action,
@@ -35,16 +40,19 @@ from dvfb.workflows.common import (
     rng_state,
     seed_everything,
 )
-from dvfb.workflows.config import InferenceConfig
-from dvfb.workflows.evaluate import collect_inference_data, evaluate_policy
-from dvfb.workflows.zeroshot import infer_task_vector
+from dvfb.workflows.evaluate import evaluate_policy
+from dvfb.workflows.zeroshot import task_skill
 
 RESUME_KIND = "finetune_resume"
 
 
 @dataclass
 class FinetuneRunConfig:
-    """A fine-tuning run: which pre-trained snapshot, which task, and the protocol."""
+    """A fine-tuning run: which pre-trained snapshot, which task, and the protocol.
+
+    A run's config is an instance of :func:`finetune_run_config_class` ``(agent)``, which adds the
+    family's ``inference`` and ``finetune`` sections.
+    """
 
     pretrain_run: str = param("", "Path of the pre-training run directory.")
     agent: str = param("dvfb", "Agent of the pre-training run (copied for reports).")
@@ -53,8 +61,29 @@ class FinetuneRunConfig:
     snapshot: int = param(0, "Pre-training snapshot (frames) the agent starts from.")
     seed: int = param(0, "Seed of the task environment and the fine-tuning randomness.")
     device: str = param("auto", "Torch device.")
-    inference: InferenceConfig = field(default_factory=InferenceConfig, metadata={"help": "Zero-shot part."})
-    finetune: FinetuneConfig = field(default_factory=FinetuneConfig, metadata={"help": "Fine-tuning part."})
+
+
+@functools.cache
+def finetune_run_config_class(agent: str) -> type:
+    spec = get_spec(agent)
+    cls = dataclasses.make_dataclass(
+        f"{spec.agent_cls.__name__}FinetuneRunConfig",
+        [("inference", spec.inference, field(default_factory=spec.inference, metadata={"help": "Zero-shot part."})),
+         ("finetune", spec.finetune, field(default_factory=spec.finetune, metadata={"help": "Fine-tuning part."}))],
+        bases=(FinetuneRunConfig,))
+    cls.__module__ = __name__
+    return cls
+
+
+def load_finetune_run_config(run: RunDir) -> FinetuneRunConfig:
+    """A fine-tuning run's ``config.json``, strictly, as its method's config class."""
+    data = read_json(run.config_path, ConfigError)
+    if not isinstance(data, dict) or not isinstance(data.get("agent"), str):
+        raise ConfigError(f"{run.config_path}: not a dvfb fine-tuning config")
+    try:
+        return from_dict(finetune_run_config_class(data["agent"]), data)
+    except ConfigError as exc:
+        raise ConfigError(f"{run.config_path}: {exc}") from exc
 
 
 def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, inference: dict | None = None,
@@ -65,7 +94,7 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     run, config = open_pretrained_run(run_path)
     check_task_in_domain(task, config.domain)
     agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
-    run_config = FinetuneRunConfig(
+    run_config = finetune_run_config_class(config.agent)(
         pretrain_run=str(run.path), agent=config.agent, domain=config.domain, task=task, snapshot=snapshot,
         seed=config.seed if seed is None else seed, device=str(agent.device),
         inference=merge(config.inference, inference or {}), finetune=merge(config.finetune, finetune or {}))
@@ -73,7 +102,7 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     path = run.path / "finetune" / (name or task)
     if resume:
         ft_run = RunDir.open(path)
-        stored = to_dict(ft_run.load_config(FinetuneRunConfig))
+        stored = to_dict(load_finetune_run_config(ft_run))
         requested = to_dict(run_config)
         for key in ("device",):
             stored.pop(key), requested.pop(key)
@@ -89,8 +118,9 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     env = envs.make(task, seed=run_config.seed)
     eval_env = envs.make(task, seed=run_config.seed)  # same seed as the training env, as in [C]
     max_len = envs.TASKS[task].episode_length
-    replay = ReplayBuffer(cfg.replay_capacity, agent.obs_dim, agent.action_dim, agent.config.z_dim,
+    replay = ReplayBuffer(cfg.replay_capacity, agent.obs_dim, agent.action_dim, agent.skill_dim,
                           max_episode_length=max_len, device=agent.device)
+    finetuner_cls = get_spec(config.agent).finetuner
     started = time.time()
 
     if resume:
@@ -100,8 +130,8 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
             raise CheckpointError(f"cannot resume {path}: {exc}") from exc
         if state.get("kind") != RESUME_KIND:
             raise CheckpointError(f"{path}: the latest checkpoint is not a fine-tuning checkpoint")
-        z = state["z"].to(agent.device)
-        finetuner = DualValueFinetuner(agent, z, cfg)
+        z = None if state["z"] is None else state["z"].to(agent.device)
+        finetuner = finetuner_cls(agent, z, cfg)
         finetuner.load_training_state(state["finetuner"])
         replay.load_state_dict(state["replay"])
         restore_rng_state(state["rng"], rng)
@@ -110,13 +140,13 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
         step, curve, inference_info = state["step"], state["curve"], state["inference_info"]
         logger = MetricsLogger(ft_run, purge_step=step + 1)
     else:
-        inference_buffer = collect_inference_data(agent, env, run_config.inference.steps,
-                                                  run_config.inference.random_action_steps, rng, max_len)
-        z, inference_info = infer_task_vector(agent, inference_buffer, run_config.inference)
-        if cfg.keep_inference_data:
-            _copy_transitions(inference_buffer, replay, z)
-        del inference_buffer  # the inference data are discarded (§8.2 step 6) unless kept above
-        finetuner = DualValueFinetuner(agent, z, cfg)
+        keep = getattr(cfg, "keep_inference_data", False)
+        z, inference_info = task_skill(agent, run, config, task, run_config.inference, rng, run_config.seed,
+                                       keep_data=keep, env=env)
+        if keep:
+            _copy_transitions(inference_info.pop("buffer"), replay, z)
+        # The inference data are discarded (§8.2 step 6) unless kept above.
+        finetuner = finetuner_cls(agent, z, cfg)
         logger = MetricsLogger(ft_run)
         returns = evaluate_policy(agent, eval_env, z, cfg.eval_episodes)
         curve = [_curve_point(0, returns)]
@@ -125,7 +155,9 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     _write_curve(ft_run, run_config, curve, inference_info, z)
 
     window = MetricWindow()
-    z_host = z.cpu().numpy()  # z_r is fixed: the replay's copy is made once, not every step
+    z_host = None if z is None else z.cpu().numpy()  # the skill is fixed: copied to the host once
+    needs = finetuner.replay_needs()
+    action_dim = agent.action_dim
     bar = progress_bar(cfg.frames, step, f"finetune {task}", progress)
     last_checkpoint = step
     episode_start = True
@@ -135,9 +167,12 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
             obs, _ = env.reset()
             replay.start_episode(obs)
             episode_start = False
-        action = agent.act(obs, z, explore=True)
+        if finetuner.uniform_seed_actions and step < cfg.seed_frames:
+            action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
+        else:
+            action = agent.act(obs, z, explore=True)
         if step >= cfg.seed_frames and step % cfg.update_every == 0:
-            window.add(step, finetuner.update(replay.sample(agent.config.batch_size, agent.config.discount)))
+            window.add(step, finetuner.update(needs.sample(replay)))
         check_action(action, step, window)
         obs, reward, terminated, truncated, _ = env.step(action)
         replay.add(action, reward, 0.0 if terminated else 1.0, obs, z_host)
@@ -157,7 +192,7 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
             if step - last_checkpoint >= cfg.checkpoint_every or step >= cfg.frames:
                 window.flush()
                 save_checkpoint(ft_run, {
-                    "kind": RESUME_KIND, "step": step, "z": z.cpu(), "curve": curve,
+                    "kind": RESUME_KIND, "step": step, "z": None if z is None else z.cpu(), "curve": curve,
                     "inference_info": inference_info, "finetuner": finetuner.training_state(),
                     "replay": replay.state_dict(), "rng": rng_state(rng),
                     "env_rng": env.unwrapped.get_rng_state(), "eval_env_rng": eval_env.unwrapped.get_rng_state()},
@@ -177,10 +212,11 @@ def _curve_point(frames: int, returns: list[float]) -> dict:
 
 
 def _write_curve(run: RunDir, config: FinetuneRunConfig, curve: list[dict], inference_info: dict,
-                 z: torch.Tensor) -> None:
+                 z: torch.Tensor | None) -> None:
     write_json_atomic(run.path / "curve.json", {
         "task": config.task, "domain": config.domain, "agent": config.agent, "seed": config.seed,
-        "snapshot": config.snapshot, "z": z.cpu().tolist(), "inference_info": inference_info, "curve": curve})
+        "snapshot": config.snapshot, "z": None if z is None else z.cpu().tolist(), "inference_info": inference_info,
+        "curve": curve})
 
 
 def _copy_transitions(source: ReplayBuffer, target: ReplayBuffer, z: torch.Tensor) -> None:

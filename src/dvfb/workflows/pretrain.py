@@ -2,13 +2,16 @@
 
 The loop, per environment step ``t``:
 
-* at an episode start: reset, draw ``z ~ p(z)``, store the reset observation;
-* if ``t % update_z_every == 0``: draw a new rollout z (§5.2);
-* act uniformly while ``t < seed_frames``, otherwise with a rollout sample of ``pi(s, z)``;
-* if ``t >= seed_frames`` and ``t % update_every == 0``: one agent update (before stepping, as the
-  authors' code does);
-* step the environment, store ``(a, task reward, discount, s', z)``. The task reward is stored for
-  logging only: the reward-free update never reads it (tasks.md §3).
+* at an episode start: reset, draw a skill from the method's prior (``z ~ p(z)`` for FB; none for
+  methods without skills), store the reset observation;
+* if ``t % update_z_every == 0``: draw a new rollout skill (§5.2);
+* act uniformly while ``t < seed_frames``, otherwise with a rollout sample of ``pi(s, skill)``;
+* if ``t >= seed_frames`` and ``t % update_every == 0``: one agent update on a batch drawn as the
+  agent's :class:`~dvfb.agents.base.ReplayNeeds` say (before stepping, as the authors' code does);
+* step the environment, store ``(a, task reward, discount, s', skill)``. The task reward is stored
+  for logging only: the reward-free update never reads it (tasks.md §3).
+
+The loop talks to the method only through the :class:`~dvfb.agents.base.Agent` interface.
 
 Resume checkpoints are written at episode ends, so a resumed run starts a fresh episode exactly
 where the uninterrupted run would have, with the same RNG streams, replay content, optimiser
@@ -40,7 +43,7 @@ from dvfb.workflows.common import (
     snapshot_name,
     snapshot_state,
 )
-from dvfb.workflows.config import PretrainConfig
+from dvfb.workflows.config import PretrainConfig, load_run_config
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +72,7 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
         raise ConfigError(f"unknown domain {config.domain!r}; choose one of {', '.join(envs.DOMAINS)}")
     if resume:
         run = RunDir.open(run_path)
-        _check_resume_config(run.load_config(PretrainConfig), config)
+        _check_resume_config(load_run_config(run.config_path), config)
         run.save_config(config)
     else:
         run = RunDir.create(run_path, config, overwrite=overwrite, command=command)
@@ -78,11 +81,11 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
     env = envs.make(config.domain, seed=config.seed, reward_free=True)
     obs_dim = env.observation_space.shape[0]
     action_dim = env.action_space.shape[0]
-    agent = make_agent(config.agent, obs_dim, action_dim, config.fb, config.exploration, device, config.perf)
-    replay = ReplayBuffer(config.replay_capacity, obs_dim, action_dim, config.fb.z_dim,
+    agent = make_agent(config.agent, obs_dim, action_dim, config, device)
+    replay = ReplayBuffer(config.replay_capacity, obs_dim, action_dim, agent.skill_dim,
                           max_episode_length=envs.TASKS[envs.pretrain_task(config.domain)].episode_length,
                           device=device)
-    need_future = config.fb.backward_input == "code_exact"
+    needs = agent.replay_needs()
 
     step, episode, last_checkpoint = 0, 0, 0
     first_reset = True
@@ -109,7 +112,13 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
     started = time.time()
     start_step = step
     episode_return, episode_start = 0.0, True
-    obs = z = z_host = None
+    obs = skill = skill_host = None
+
+    def draw_skill() -> None:
+        nonlocal skill, skill_host
+        drawn = agent.sample_skill(1)
+        skill = None if drawn is None else drawn[0]
+        skill_host = None if skill is None else skill.cpu().numpy()  # what the replay stores; once per draw
 
     def save_resume() -> None:
         save_checkpoint(run, {
@@ -122,24 +131,21 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
             if episode_start:
                 obs, _ = env.reset(seed=config.seed) if first_reset else env.reset()
                 first_reset = False
-                z = agent.sample_z(1)[0]
-                z_host = z.cpu().numpy()  # what the replay stores; converted once per new z
+                draw_skill()
                 replay.start_episode(obs)
                 episode_return, episode_start = 0.0, False
             if step % config.update_z_every == 0:
-                z = agent.sample_z(1)[0]
-                z_host = z.cpu().numpy()
+                draw_skill()
             if step < config.seed_frames:
                 action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
             else:
-                action = agent.act(obs, z, explore=True)
+                action = agent.act(obs, skill, explore=True)
             if step >= config.seed_frames and step % config.update_every == 0:
-                batch = replay.sample(config.fb.batch_size, config.fb.discount, need_future=need_future)
-                window.add(step, agent.update(batch))
+                window.add(step, agent.update(needs.sample(replay)))
             check_action(action, step, window)
             obs, _, terminated, truncated, info = env.step(action)
             task_reward = info["task_reward"]
-            replay.add(action, task_reward, 0.0 if terminated else 1.0, obs, z_host)
+            replay.add(action, task_reward, 0.0 if terminated else 1.0, obs, skill_host)
             episode_return += task_reward
             step += 1
             bar.update(1)

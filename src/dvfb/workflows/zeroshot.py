@@ -1,6 +1,12 @@
 """Zero-shot evaluation of a pre-trained run on a task (algorithm.md §8).
 
-Three ways to obtain the task vector:
+The method's family chooses the strategy (its :class:`~dvfb.agents.registry.AgentSpec`):
+
+* ``reward_inference`` (FB, DVFB): infer the task's skill from data, then evaluate ``pi(s, z_r)``;
+* ``single_policy`` (methods without skills: RND, Disagreement, ICM-APT, Proto): evaluate the one
+  pre-trained policy (the baselines' protocol; these methods have no task inference).
+
+Three ways to obtain the task vector of the ``reward_inference`` family:
 
 * ``rewards`` (the paper's protocol): collect ``inference.steps`` reward-labelled steps in the
   task, draw ``inference.samples`` of them, keep the top reward quantile, ``z_r = proj(mean r B)``;
@@ -23,7 +29,7 @@ import numpy as np
 import torch
 
 from dvfb import envs
-from dvfb.agents import FBAgent
+from dvfb.agents import Agent, get_spec
 from dvfb.config import merge, to_dict
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.replay import ReplayBuffer
@@ -35,8 +41,8 @@ from dvfb.workflows.evaluate import collect_inference_data, evaluate_policy
 Z_SOURCES = ("rewards", "reward_fn", "goal")
 
 
-def infer_task_vector(agent: FBAgent, buffer, config: InferenceConfig) -> tuple[torch.Tensor, dict]:
-    """Draw the inference samples from ``buffer`` and infer z_r (§8.2)."""
+def infer_task_vector(agent: Agent, buffer, config: InferenceConfig) -> tuple[torch.Tensor, dict]:
+    """Draw the inference samples from ``buffer`` and let the agent infer the task's skill (§8.2)."""
     data = buffer.transitions()
     n = data.obs.shape[0]
     if n == 0:
@@ -45,7 +51,7 @@ def infer_task_vector(agent: FBAgent, buffer, config: InferenceConfig) -> tuple[
         index = torch.randint(0, n, (config.samples,), device=data.obs.device)
     else:
         index = torch.randperm(n, device=data.obs.device)[: config.samples]
-    return agent.infer_z(data.obs[index], data.next_obs[index], data.reward[index], config.reward_quantile)
+    return agent.infer_skill(data.obs[index], data.next_obs[index], data.reward[index], config)
 
 
 def load_reward_fn(spec: str) -> Callable[[np.ndarray], np.ndarray]:
@@ -67,14 +73,14 @@ def load_reward_fn(spec: str) -> Callable[[np.ndarray], np.ndarray]:
         raise ConfigError(f"cannot load reward function {spec!r}: {exc}") from exc
 
 
-def infer_from_reward_fn(agent: FBAgent, run: RunDir, config: PretrainConfig, reward_fn: Callable,
+def infer_from_reward_fn(agent: Agent, run: RunDir, config: PretrainConfig, reward_fn: Callable,
                          inference: InferenceConfig) -> tuple[torch.Tensor, dict]:
     """Apply ``reward_fn`` to the pre-training replay states and infer z from those rewards."""
     try:
         state = load_checkpoint(run, None, map_location="cpu")
     except CheckpointError as exc:
         raise CheckpointError(f"reward_fn inference needs the run's replay buffer (a resume checkpoint): {exc}") from exc
-    buffer = ReplayBuffer(config.replay_capacity, agent.obs_dim, agent.action_dim, config.fb.z_dim,
+    buffer = ReplayBuffer(config.replay_capacity, agent.obs_dim, agent.action_dim, agent.skill_dim,
                           envs.TASKS[envs.pretrain_task(config.domain)].episode_length, device=agent.device)
     buffer.load_state_dict(state["replay"])
     data = buffer.transitions()
@@ -83,7 +89,7 @@ def infer_from_reward_fn(agent: FBAgent, run: RunDir, config: PretrainConfig, re
         raise ConfigError(f"reward function returned {rewards.shape[0]} rewards for {data.next_obs.shape[0]} states")
     reward_t = torch.as_tensor(rewards, device=agent.device)
     index = torch.randperm(reward_t.shape[0], device=agent.device)[: inference.samples]
-    return agent.infer_z(data.obs[index], data.next_obs[index], reward_t[index], inference.reward_quantile)
+    return agent.infer_skill(data.obs[index], data.next_obs[index], reward_t[index], inference)
 
 
 def result_path(run: RunDir, task: str, snapshot: int, final_snapshot: int) -> Path:
@@ -98,6 +104,9 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     if z_source not in Z_SOURCES:
         raise ConfigError(f"z_source must be one of {Z_SOURCES}, got {z_source!r}")
     run, config = open_pretrained_run(run_path)
+    if z_source != "rewards" and get_spec(config.agent).zero_shot != "reward_inference":
+        raise ConfigError(f"--z-source {z_source} needs a method that infers skills; {config.agent!r} has a single "
+                          "policy (use the default)")
     check_task_in_domain(task, config.domain)
     cfg = merge(config.inference, inference or {})
     agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
@@ -108,27 +117,14 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     seed = config.seed if seed is None else seed
     rng = seed_everything(seed)
     started = time.time()
-    max_len = envs.TASKS[task].episode_length
-    if z_source == "rewards":
-        env = envs.make(task, seed=seed)
-        buffer = collect_inference_data(agent, env, cfg.steps, cfg.random_action_steps, rng, max_len)
-        z, info = infer_task_vector(agent, buffer, cfg)
-    elif z_source == "reward_fn":
-        if reward_fn is None:
-            raise ConfigError("z_source 'reward_fn' needs a reward function")
-        fn = load_reward_fn(reward_fn) if isinstance(reward_fn, str) else reward_fn
-        z, info = infer_from_reward_fn(agent, run, config, fn, cfg)
-    else:
-        if goal is None:
-            raise ConfigError("z_source 'goal' needs a goal observation")
-        z = agent.infer_z_from_goal(torch.as_tensor(goal, dtype=torch.float32))
-        info = {"goal": np.asarray(goal, dtype=float).tolist()}
+    z, info = task_skill(agent, run, config, task, cfg, rng, seed, z_source, reward_fn, goal)
     eval_env = envs.make(task, seed=seed)
     returns = evaluate_policy(agent, eval_env, z, cfg.eval_episodes)
     result = {
         "task": task, "domain": config.domain, "agent": config.agent, "preset": config.preset,
-        "pretrain_seed": config.seed, "seed": seed, "snapshot_frames": snapshot, "z_source": z_source,
-        "inference": to_dict(cfg), "inference_info": info, "z": z.cpu().tolist(),
+        "pretrain_seed": config.seed, "seed": seed, "snapshot_frames": snapshot,
+        "z_source": z_source if get_spec(config.agent).zero_shot == "reward_inference" else "none",
+        "inference": to_dict(cfg), "inference_info": info, "z": None if z is None else z.cpu().tolist(),
         "returns": returns, "mean_return": float(np.mean(returns)) if returns else float("nan"),
         "std_return": float(np.std(returns)) if returns else float("nan"),
         "eval_episodes": len(returns), "wall_clock_s": time.time() - started,
@@ -136,6 +132,38 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out, result)
     return result
+
+
+def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, cfg, rng: np.random.Generator,
+               seed: int, z_source: str = "rewards", reward_fn: str | Callable | None = None,
+               goal: np.ndarray | None = None, keep_data: bool = False, env=None) -> tuple[torch.Tensor | None, dict]:
+    """The skill the policy is evaluated with, by the method family's zero-shot strategy.
+
+    ``reward_inference``: collected reward-labelled steps (or a reward function, or a goal);
+    ``single_policy``: no skill (None) and no task interaction. With ``keep_data`` the collected
+    buffer is returned in ``info["buffer"]`` (fine-tuning's D12 option). ``env``: the task
+    environment to collect in (fine-tuning goes on in the same one); by default a new one.
+    """
+    strategy = get_spec(config.agent).zero_shot
+    if strategy == "single_policy":
+        return None, {"strategy": "single_policy"}
+    if z_source == "rewards":
+        env = env if env is not None else envs.make(task, seed=seed)
+        buffer = collect_inference_data(agent, env, cfg.steps, cfg.random_action_steps, rng,
+                                        envs.TASKS[task].episode_length)
+        z, info = infer_task_vector(agent, buffer, cfg)
+        if keep_data:
+            info["buffer"] = buffer
+        return z, info
+    if z_source == "reward_fn":
+        if reward_fn is None:
+            raise ConfigError("z_source 'reward_fn' needs a reward function")
+        fn = load_reward_fn(reward_fn) if isinstance(reward_fn, str) else reward_fn
+        return infer_from_reward_fn(agent, run, config, fn, cfg)
+    if goal is None:
+        raise ConfigError("z_source 'goal' needs a goal observation")
+    z = agent.skill_from_goal(torch.as_tensor(goal, dtype=torch.float32))
+    return z, {"goal": np.asarray(goal, dtype=float).tolist()}
 
 
 def random_policy_return(task: str, episodes: int, seed: int = 0) -> list[float]:

@@ -1,0 +1,155 @@
+"""The one interface between the workflows and every method (docs/methods.md, "The agent interface").
+
+A workflow (pre-training, zero-shot, fine-tuning, the analyses) sees an agent only through
+:class:`Agent`:
+
+* **skills** -- ``skill_dim`` (0 for methods without one), :meth:`Agent.sample_skill` draws from
+  the method's prior; the workflow resamples every ``update_z_every`` steps and at episode starts;
+* **acting** -- :meth:`Agent.act` for one observation and an optional skill, a rollout sample or
+  the mean;
+* **learning** -- :meth:`Agent.replay_needs` says how to sample the replay (batch size, discount,
+  n-step, whether ``s_{t+2}`` is needed), :meth:`Agent.update` takes one batch and returns
+  detached metric tensors;
+* **state** -- :meth:`Agent.pretrained_modules` (what a snapshot keeps),
+  :meth:`Agent.training_state` / :meth:`Agent.load_training_state` (networks, statistics and
+  optimisers, for exact resume);
+* **downstream** -- the method's family chooses the zero-shot strategy and the fine-tuner in its
+  :class:`~dvfb.agents.registry.AgentSpec`; families that infer a skill from reward-labelled data
+  implement :meth:`Agent.infer_skill` (and :meth:`Agent.skill_from_goal` where it makes sense).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+from torch import nn
+
+from dvfb.errors import ConfigError
+from dvfb.nets import ACTION_EPS, HostActor, rollout_action
+from dvfb.replay import Batch
+
+
+@dataclass(frozen=True)
+class ReplayNeeds:
+    """How an agent's batches are drawn from the replay buffer (docs/methods.md, "Replay").
+
+    ``nstep``: rewards summed over n steps with ``discount = gamma^n`` and ``next_obs = s_{t+n}``,
+    never across an episode boundary (n = 3 for the URLB-style agents). ``need_future``: the batch
+    also carries ``s_{t+2}`` (FB's ``code_exact`` pairings).
+    """
+
+    batch_size: int
+    discount: float
+    nstep: int = 1
+    need_future: bool = False
+
+    def sample(self, replay, generator: torch.Generator | None = None) -> Batch:
+        return replay.sample(self.batch_size, self.discount, need_future=self.need_future, nstep=self.nstep,
+                             generator=generator)
+
+
+class Agent(nn.Module):
+    """Base class of every method. Subclasses set ``name``, build ``self.actor`` (an
+    :class:`~dvfb.nets.Actor`) and implement :meth:`from_config`, :meth:`replay_needs`,
+    :meth:`update`, :meth:`optimizers` and :meth:`pretrained_modules`."""
+
+    name: ClassVar[str] = ""
+    obs_dim: int
+    action_dim: int
+    device: torch.device
+    actor: nn.Module
+
+    @classmethod
+    def from_config(cls, obs_dim: int, action_dim: int, config: Any, device: str | torch.device = "cpu") -> Agent:
+        """Build the agent from a run config (its sections and ``perf``)."""
+        raise NotImplementedError
+
+    # Skills ------------------------------------------------------------------------------------
+    @property
+    def skill_dim(self) -> int:
+        """Width of the skill the actor is conditioned on (and the replay stores); 0 = none."""
+        return 0
+
+    def sample_skill(self, n: int = 1) -> torch.Tensor | None:
+        """``n`` draws of the method's skill prior, ``(n, skill_dim)``; None without skills."""
+        return None
+
+    # Learning ----------------------------------------------------------------------------------
+    def replay_needs(self) -> ReplayNeeds:
+        raise NotImplementedError
+
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    # Acting ------------------------------------------------------------------------------------
+    @property
+    def policy_stddev(self) -> float:
+        """The fixed standard deviation of rollout actions (§3.3 of docs/methods.md)."""
+        raise NotImplementedError
+
+    def act(self, obs: np.ndarray, skill: torch.Tensor | None, explore: bool) -> np.ndarray:
+        """One action for one observation: a rollout sample if ``explore``, else the mean (§3.3).
+
+        Runs in float32 whatever ``perf`` says (batch 1: per-op overhead, not FLOPs). On the CPU
+        the mean comes from :class:`~dvfb.nets.HostActor` (numpy on the actor's own parameter
+        storage, several times faster than the torch modules at batch 1; bench/README.md); the
+        exploration noise is still drawn from torch's generator, so the random stream is the same
+        on every path.
+        """
+        if self.device.type != "cpu":
+            return self._act_torch(obs, skill, explore)
+        host = getattr(self, "_host_actor", None)
+        if host is None or host.actor is not self.actor:
+            host = self._host_actor = HostActor(self.actor)  # first call, or the actor module was replaced
+        skill_np = skill.detach().numpy() if skill is not None else np.zeros(0, dtype=np.float32)
+        action = host(obs, skill_np)
+        if explore:
+            # rollout_action's math: clamp(mu + sigma * eps), eps ~ N(0, 1) from torch's stream.
+            action += torch.randn(1, self.action_dim).numpy()[0] * np.float32(self.policy_stddev)
+            np.minimum(action, np.float32(1 - ACTION_EPS), out=action)
+            np.maximum(action, np.float32(-1 + ACTION_EPS), out=action)
+        return action
+
+    @torch.inference_mode()
+    def _act_torch(self, obs: np.ndarray, skill: torch.Tensor | None, explore: bool) -> np.ndarray:
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
+        skill_t = skill.reshape(1, -1) if skill is not None else obs_t.new_zeros(1, 0)
+        mean = self.actor(obs_t, skill_t)
+        action = rollout_action(mean, self.policy_stddev) if explore else mean
+        return action[0].cpu().numpy()
+
+    # Zero-shot (families that infer a skill from data) ----------------------------------------
+    def infer_skill(self, obs: torch.Tensor, next_obs: torch.Tensor, reward: torch.Tensor,
+                    inference: Any) -> tuple[torch.Tensor, dict]:
+        """The skill of a task from reward-labelled transitions (FB: z_r; SF: a regression)."""
+        raise ConfigError(f"agent {self.name!r} does not infer a skill from rewards")
+
+    def skill_from_goal(self, goal_obs: torch.Tensor) -> torch.Tensor:
+        """The skill that reaches a goal observation."""
+        raise ConfigError(f"agent {self.name!r} does not infer a skill from a goal state")
+
+    # State -------------------------------------------------------------------------------------
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        raise NotImplementedError
+
+    def pretrained_modules(self) -> dict[str, nn.Module]:
+        """What a snapshot keeps and zero-shot / fine-tuning load."""
+        raise NotImplementedError
+
+    def training_state(self) -> dict:
+        """Networks, running statistics and optimiser states (for resume)."""
+        return {"modules": self.state_dict(),
+                "optimizers": {k: o.state_dict() for k, o in self.optimizers().items()}}
+
+    def load_training_state(self, state: dict) -> None:
+        self.load_state_dict(state["modules"])
+        for k, o in self.optimizers().items():
+            o.load_state_dict(state["optimizers"][k])
+
+
+def no_skill_like(obs: torch.Tensor) -> torch.Tensor:
+    """An empty ``(N, 0)`` skill, so that skill-less methods share the skill-conditioned networks."""
+    return obs.new_zeros(obs.shape[0], 0)

@@ -1,0 +1,211 @@
+"""The DDPG core every URLB-style method stands on, and its fine-tuner (docs/methods.md, "DDPG core").
+
+* :class:`DDPGConfig` -- the backbone's hyper-parameters (hidden 1024, batch 1024, n = 3, ...);
+* :class:`DDPGCore` -- actor ``mu(s, skill)`` (LNT first layer, then ReLU), twin critic on
+  ``[s, skill, a]`` with a shared LNT trunk and batched heads, its EMA target, and the update given
+  a reward: critic on ``y = r + gamma^n min_k Q_k'(s_{t+n}, a')``, then actor on ``-min_k Q_k``,
+  then the target EMA;
+* :class:`IntrinsicDDPGAgent` -- a method = the core trained on one
+  :class:`~dvfb.rewards.base.IntrinsicReward` module's reward; a baseline only builds its module;
+* :class:`DDPGFinetuneConfig`, :class:`DDPGFinetuner` -- URLB's fine-tuning: keep the pre-trained
+  actor, a fresh critic whose trunk (or, for Proto, everything) is copied from pre-training, and
+  the extrinsic n-step reward.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from dvfb.agents.base import Agent, ReplayNeeds, no_skill_like
+from dvfb.agents.perf import NetRunner, PerfConfig, requires_grad_disabled
+from dvfb.agents.protocols import FinetuneProtocol
+from dvfb.config import param
+from dvfb.nets import Actor, TwinCritic, adam, call_network, make_target, soft_update_, training_action, twin_td_loss
+from dvfb.replay import Batch
+from dvfb.rewards.base import IntrinsicReward
+
+CRITIC_INITS = ("trunk", "all", "none")
+# The CPU-sized preset of the URLB-style agents: the backbone's constants with narrower networks
+# and smaller batches, as the FB agents' small preset (docs/results/cpu_experiment.md).
+DDPG_SMALL = {"hidden_dim": 256, "batch_size": 256}
+
+
+@dataclass
+class DDPGConfig:
+    """The DDPG backbone shared by the URLB-style agents (docs/methods.md, "DDPG core")."""
+
+    hidden_dim: int = param(1024, "Hidden width H of the actor and the critic.")
+    batch_size: int = param(1024, "Transitions per gradient update.")
+    lr: float = param(1e-4, "Adam learning rate of the actor and the critic.")
+    discount: float = param(0.99, "Discount gamma.")
+    nstep: int = param(3, "n of the n-step returns; next_obs of a batch row is s_{t+n}.")
+    tau: float = param(0.01, "EMA rate of the target critic (after every update).")
+    stddev: float = param(0.2, "Fixed policy standard deviation sigma.")
+    stddev_clip: float = param(0.3, "Noise clip of training samples.")
+    fused_adam: bool = param(True, "Use torch's fused Adam where available (same math).")
+
+
+class DDPGCore(nn.Module):
+    """Actor, twin critic and target critic, and one DDPG update given the reward of a batch."""
+
+    def __init__(self, obs_dim: int, skill_dim: int, action_dim: int, config: DDPGConfig):
+        super().__init__()
+        self.config = config
+        self.obs_dim, self.skill_dim, self.action_dim = obs_dim, skill_dim, action_dim
+        h = config.hidden_dim
+        self.actor = Actor(obs_dim, skill_dim, action_dim, h, h, arch="mlp")
+        self.critic = TwinCritic(obs_dim, action_dim, skill_dim, h)
+        self.critic_target = make_target(self.critic)
+
+    def make_optimizers(self) -> None:
+        """Fresh Adam optimisers of the actor and the critic (after the core sits on its device)."""
+        c = self.config
+        self.actor_optimizer = adam(self.actor.parameters(), c.lr, c.fused_adam)
+        self.critic_optimizer = adam(self.critic.parameters(), c.lr, c.fused_adam)
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"actor_optimizer": self.actor_optimizer, "critic_optimizer": self.critic_optimizer}
+
+    def critic_loss(self, batch: Batch, skill: torch.Tensor, reward: torch.Tensor, run=call_network) -> torch.Tensor:
+        c = self.config
+        with torch.no_grad():
+            next_action = training_action(run(self.actor, batch.next_obs, skill), c.stddev, c.stddev_clip)
+            next_q = run(self.critic_target, batch.next_obs, skill, next_action).amin(0)  # (N, 1)
+            target = reward + batch.discount * next_q
+        return twin_td_loss(run(self.critic, batch.obs, skill, batch.action), target)
+
+    def actor_loss(self, obs: torch.Tensor, skill: torch.Tensor, run=call_network) -> torch.Tensor:
+        c = self.config
+        action = training_action(run(self.actor, obs, skill), c.stddev, c.stddev_clip)
+        return -run(self.critic, obs, skill, action).amin(0).mean()
+
+    def update(self, batch: Batch, reward: torch.Tensor, metrics: dict, run=call_network) -> None:
+        """Critic step, actor step, target EMA (URLB's order). ``reward`` is ``(N, 1)``."""
+        skill = batch.z if batch.z is not None else no_skill_like(batch.obs)
+        critic_loss = self.critic_loss(batch, skill, reward, run)
+        self.critic_optimizer.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_optimizer.step()
+        # The critic is differentiated only with respect to the action: its parameters stay out
+        # of the actor's graph, and only the actor's leaves receive gradients.
+        with requires_grad_disabled(list(self.critic.parameters())):
+            actor_loss = self.actor_loss(batch.obs, skill, run)
+        self.actor_optimizer.zero_grad(set_to_none=True)
+        actor_loss.backward(inputs=list(self.actor.parameters()))
+        self.actor_optimizer.step()
+        soft_update_(self.critic_target, self.critic, self.config.tau)
+        metrics.update(critic_loss=critic_loss.detach(), actor_loss=actor_loss.detach(), reward=reward.mean())
+
+
+class IntrinsicDDPGAgent(Agent):
+    """A URLB-style method: the DDPG core trained on one intrinsic-reward module.
+
+    Subclasses set ``name`` and implement :meth:`build_reward` (and :meth:`from_config`). The run
+    config's ``ddpg`` section configures the core; ``skill_dim`` is 0 for the exploration methods.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, ddpg: DDPGConfig, reward_config,
+                 device: str | torch.device = "cpu", perf: PerfConfig | None = None, skill_dim: int = 0):
+        super().__init__()
+        self.obs_dim, self.action_dim, self.ddpg, self.reward_config = obs_dim, action_dim, ddpg, reward_config
+        self._skill_dim = skill_dim
+        self.core = DDPGCore(obs_dim, skill_dim, action_dim, ddpg)
+        self.intrinsic = self.build_reward()
+        self.to(device)
+        self.device = torch.device(device)
+        self.core.make_optimizers()
+        self.intrinsic.make_optimizer(getattr(reward_config, "lr", ddpg.lr), ddpg.fused_adam)
+        self.net_runner = NetRunner(perf, self.device)
+        self.net_runner.compile([self.core.actor, self.core.critic, self.core.critic_target])
+
+    def build_reward(self) -> IntrinsicReward:
+        raise NotImplementedError
+
+    @property
+    def actor(self) -> nn.Module:
+        return self.core.actor
+
+    @property
+    def skill_dim(self) -> int:
+        return self._skill_dim
+
+    @property
+    def policy_stddev(self) -> float:
+        return self.ddpg.stddev
+
+    def replay_needs(self) -> ReplayNeeds:
+        return ReplayNeeds(self.ddpg.batch_size, self.ddpg.discount, nstep=self.ddpg.nstep)
+
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """Train the reward module, score the batch with it, then one DDPG step on that reward."""
+        metrics: dict[str, torch.Tensor] = {}
+        reward = self.intrinsic.update_and_score(batch, metrics, self.net_runner)
+        metrics["intrinsic_reward"] = reward.mean()
+        self.core.update(batch, reward, metrics, self.net_runner)
+        return metrics
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        opts = self.core.optimizers()
+        if self.intrinsic.optimizer is not None:
+            opts["reward_optimizer"] = self.intrinsic.optimizer
+        return opts
+
+    def pretrained_modules(self) -> dict[str, nn.Module]:
+        # Everything (URLB pickles the whole agent); fine-tuning uses the actor and the critic.
+        return {"core": self.core, "intrinsic": self.intrinsic}
+
+
+@dataclass
+class DDPGFinetuneConfig(FinetuneProtocol):
+    """URLB-style fine-tuning (docs/methods.md, "Fine-tuning the URLB-style agents")."""
+
+    init_critic: str = param("trunk", "What the fresh critic copies from pre-training: its trunk (URLB), all of "
+                             "it (Proto), or nothing.", CRITIC_INITS)
+
+
+class DDPGFinetuner(nn.Module):
+    """Fine-tune a URLB-style agent on the extrinsic n-step reward (§0.6 of the baselines' protocol).
+
+    The pre-trained actor is kept; the critic is fresh, with its trunk (``init_critic="trunk"``) or
+    all of it (``"all"``) copied from pre-training. The target critic is the copy of the *fresh*
+    critic made before the trunk copy and is never re-synchronised (URLB's behaviour; it drifts to
+    the trained one by the EMA). Optimisers are new; the intrinsic module is no longer used. The
+    skill, if the method has one, is fixed and comes with every stored transition.
+    """
+
+    uniform_seed_actions = True
+
+    def __init__(self, agent: IntrinsicDDPGAgent, skill: torch.Tensor | None, config: DDPGFinetuneConfig):
+        super().__init__()
+        self.agent, self.config = agent, config
+        core = agent.core
+        fresh = TwinCritic(agent.obs_dim, agent.action_dim, agent.skill_dim, agent.ddpg.hidden_dim).to(agent.device)
+        target = make_target(fresh)
+        if config.init_critic == "trunk":
+            fresh.trunk.load_state_dict(core.critic.trunk.state_dict())
+        elif config.init_critic == "all":
+            fresh.load_state_dict(core.critic.state_dict())
+        core.critic, core.critic_target = fresh, target
+        core.make_optimizers()
+        self.skill = None if skill is None else skill.detach().clone()
+
+    def replay_needs(self) -> ReplayNeeds:
+        return self.agent.replay_needs()
+
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        metrics: dict[str, torch.Tensor] = {}
+        self.agent.core.update(batch, batch.reward, metrics, self.agent.net_runner)
+        return metrics
+
+    def training_state(self) -> dict:
+        core = self.agent.core
+        return {"core": core.state_dict(), "optimizers": {k: o.state_dict() for k, o in core.optimizers().items()}}
+
+    def load_training_state(self, state: dict) -> None:
+        core = self.agent.core
+        core.load_state_dict(state["core"])
+        for k, o in core.optimizers().items():
+            o.load_state_dict(state["optimizers"][k])

@@ -1,0 +1,87 @@
+"""The registry of methods: each agent module registers one :class:`AgentSpec` beside its class.
+
+Everything above the agents asks the registry, never a hard-coded list: the ``--agent`` choices and
+the agent's config flags of the CLI, the run config's sections (typed, strict), the presets, the
+zero-shot strategy and fine-tuner of the method's family, and the method labels of the reports.
+Adding a method is its own module ending in :func:`register`, plus one import line in
+:mod:`dvfb.agents` (docs/adding_a_method.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from dvfb.errors import ConfigError
+
+# Zero-shot strategies a family can choose (implemented in dvfb.workflows.zeroshot):
+#   reward_inference -- collect reward-labelled steps, the agent infers the task's skill (FB, SF);
+#   single_policy    -- methods without skills: evaluate the one policy (RND, Disagreement, ...).
+ZERO_SHOT_STRATEGIES = ("reward_inference", "single_policy")
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """What the rest of the package needs to know about a method.
+
+    ``sections`` are the agent's typed config sections, each a dataclass that becomes a section
+    of the run config (``--SECTION.FIELD`` flags). ``inference`` and ``finetune`` are the config
+    classes of the family's zero-shot and fine-tuning protocols; ``finetuner`` is built as
+    ``finetuner(agent, skill, finetune_config)``. ``presets`` maps a preset name to overrides of
+    the run config (missing presets mean the spec's values); ``defaults`` overrides the run
+    config's top-level fields for this method. ``label(run_config, finetune_config)`` names the
+    method in reports (variants such as ``dvfb_wo_ce``); by default the agent's name. ``column``
+    orders the report's columns.
+    """
+
+    name: str
+    agent_cls: type
+    summary: str
+    family: str
+    sections: dict[str, type]
+    zero_shot: str
+    inference: type
+    finetune: type
+    finetuner: type
+    presets: dict[str, dict] = field(default_factory=dict)
+    defaults: dict[str, Any] = field(default_factory=dict)
+    label: Callable[[Any, Any], str] | None = None
+    column: int = 100  # position of the method's columns in report tables (ties: registry order)
+
+    def __post_init__(self) -> None:
+        if self.zero_shot not in ZERO_SHOT_STRATEGIES:
+            raise ValueError(f"{self.name}: zero_shot must be one of {ZERO_SHOT_STRATEGIES}")
+
+    def method_label(self, run_config: Any, finetune_config: Any = None) -> str:
+        """The report's name for a run (configs as dataclasses or dicts)."""
+        return self.label(run_config, finetune_config) if self.label is not None else self.name
+
+
+AGENTS: dict[str, AgentSpec] = {}
+
+
+def register(spec: AgentSpec) -> AgentSpec:
+    """Add a method to the registry (called once, at the end of its module)."""
+    if spec.name in AGENTS and AGENTS[spec.name].agent_cls is not spec.agent_cls:
+        raise ValueError(f"agent {spec.name!r} is registered twice")
+    AGENTS[spec.name] = spec
+    return spec
+
+
+def agent_names() -> tuple[str, ...]:
+    return tuple(AGENTS)
+
+
+def get_spec(name: str) -> AgentSpec:
+    """The spec of a registered method; an unknown name is a :class:`ConfigError` listing the choices."""
+    try:
+        return AGENTS[name]
+    except KeyError:
+        raise ConfigError(f"unknown agent {name!r}; choose one of {', '.join(AGENTS)}") from None
+
+
+def config_field(config: Any, name: str, default: Any = None) -> Any:
+    """``config.name`` or ``config[name]``: labels read configs as dataclasses or JSON dicts."""
+    if isinstance(config, dict):
+        return config.get(name, default)
+    return getattr(config, name, default)

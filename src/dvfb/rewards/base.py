@@ -1,0 +1,63 @@
+"""The one small interface every intrinsic-reward module implements (docs/methods.md, "Rewards").
+
+A reward module owns its networks, running statistics and optimiser. An agent calls it once per
+update with the sampled :class:`~dvfb.replay.Batch`:
+
+* :meth:`IntrinsicReward.update` -- gradient step(s) of the module's own losses on the batch;
+* :meth:`IntrinsicReward.score` -- the reward of every row, ``(N, 1)``, without gradient;
+* :meth:`IntrinsicReward.update_and_score` -- both, in that order (every URLB-style module trains
+  first and then scores with its updated networks). Modules override it when the score can reuse a
+  forward pass of the update.
+
+What a row's fields mean is the agent's business: for the URLB-style agents ``batch.next_obs`` is
+the n-step successor ``s_{t+n}``; for DVFB it is ``s_{t+1}``. ``batch.z`` is the skill column a
+module may read (DVFB passes B's labels there).
+
+``run(net, *inputs)`` is how a module calls its networks: agents pass their
+:class:`~dvfb.agents.perf.NetRunner` so that precision and compilation apply; the default calls
+the network directly.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import nn
+
+from dvfb.nets import adam, call_network
+from dvfb.replay import Batch
+
+Runner = Callable[..., torch.Tensor]
+
+
+class IntrinsicReward(nn.Module):
+    """Base class: update on a batch, score a batch. Subclasses implement :meth:`update` and
+    :meth:`score`, and build ``self.optimizer`` in :meth:`make_optimizer` when they learn."""
+
+    optimizer: torch.optim.Optimizer | None = None
+
+    def make_optimizer(self, lr: float, fused: bool = True) -> None:
+        """Create ``self.optimizer`` (Adam) over the module's trainable parameters; the agent calls
+        this once after moving the module to its device."""
+        params = [p for p in self.parameters() if p.requires_grad]
+        self.optimizer = adam(params, lr, fused) if params else None
+
+    def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
+        """Train the module on ``batch``; returns detached metric tensors (no host sync)."""
+        return {}
+
+    def score(self, batch: Batch, run: Runner = call_network) -> torch.Tensor:
+        """The intrinsic reward of every row of ``batch``, ``(N, 1)``, without gradient."""
+        raise NotImplementedError
+
+    def update_and_score(self, batch: Batch, metrics: dict, run: Runner = call_network) -> torch.Tensor:
+        metrics.update(self.update(batch, run))
+        with torch.no_grad():
+            return self.score(batch, run)
+
+    def step(self, loss: torch.Tensor) -> None:
+        """One optimiser step on ``loss`` (zero_grad, backward, step)."""
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
