@@ -16,6 +16,9 @@ from dvfb.agents.registry import AGENTS, AgentSpec, agent_names, get_spec, regis
 from dvfb.agents import fb  # noqa: E402,F401  (also registers the FB fine-tuner)
 from dvfb.agents import dvfb  # noqa: E402,F401
 from dvfb.agents import rnd  # noqa: E402,F401
+from dvfb.agents import disagreement  # noqa: E402,F401
+from dvfb.agents import icm_apt  # noqa: E402,F401
+from dvfb.agents import proto  # noqa: E402,F401
 
 from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig  # noqa: E402
 from dvfb.agents.fb import FBAgent, FBConfig  # noqa: E402
