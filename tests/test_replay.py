@@ -315,3 +315,55 @@ def test_documented_memory_figure():
     for capacity, max_len, z_dim in ((5000, 100, 50), (1000, 1000, 0)):
         buffer = ReplayBuffer(capacity, 24, 6, z_dim, max_episode_length=max_len)
         assert buffer.nbytes == ReplayBuffer.estimate_nbytes(capacity, 24, 6, z_dim, max_len)
+
+
+# ---------------------------------------------------------------------------------------------
+# n-step tuples (URLB-style agents, n = 3)
+
+
+def test_nstep_tuples_by_hand_across_an_episode_boundary():
+    """Episodes of 4 and 5 steps: with n = 3 only t <= T - 3 is eligible (2 + 3 transitions), and
+    each row is (s_t, a_t, r_t + g r_{t+1} + g^2 r_{t+2}, g^3, s_{t+3}, z_t), never crossing into the
+    next episode."""
+    gamma = 0.9
+    buffer = make_buffer()
+    fill(buffer, [4, 5])
+    batch = buffer.sample(4000, gamma, nstep=3, generator=torch.Generator().manual_seed(0))
+    episode, t = batch.obs[:, 0].long(), batch.obs[:, 1].long()
+    pairs = set(zip(episode.tolist(), t.tolist()))
+    assert pairs == {(0, 0), (0, 1), (1, 0), (1, 1), (1, 2)}  # every eligible one is drawn, no other
+    for e, s in pairs:
+        rows = (episode == e) & (t == s)
+        expected = sum(gamma ** i * reward_of(e, s + i) for i in range(3))
+        assert torch.allclose(batch.reward[rows], torch.full((int(rows.sum()), 1), expected))
+        assert torch.equal(batch.next_obs[rows][0], torch.as_tensor(obs_of(e, s + 3)))
+        assert torch.equal(batch.action[rows][0], torch.as_tensor(action_of(e, s)))
+        assert torch.equal(batch.z[rows][0], torch.as_tensor(z_of(e, s)))
+    assert torch.allclose(batch.discount, torch.full_like(batch.discount, gamma ** 3))
+    # The draw is uniform over the 5 eligible transitions.
+    counts = np.array([int(((episode == e) & (t == s)).sum()) for e, s in sorted(pairs)])
+    assert stats.chisquare(counts).pvalue > 1e-3
+
+
+def test_nstep_reward_stops_at_a_terminal_step():
+    """An environment discount of 0 at step t+1 zeroes the rewards after it and the bootstrap."""
+    gamma = 0.5
+    buffer = make_buffer(z_dim=0)
+    buffer.start_episode(obs_of(0, 0))
+    for t, discount in enumerate([1.0, 0.0, 1.0, 1.0]):
+        buffer.add(action_of(0, t), reward_of(0, t), discount, obs_of(0, t + 1))
+    batch = buffer.sample(2000, gamma, nstep=3, generator=torch.Generator().manual_seed(1))
+    first = batch.obs[:, 1] == 0
+    # r_0 + g * d_0 * r_1 + g^2 * d_0 * d_1 * r_2 with d_1 = 0; bootstrap g^3 * d_0 d_1 d_2 = 0.
+    assert torch.allclose(batch.reward[first], torch.tensor(reward_of(0, 0) + gamma * reward_of(0, 1)))
+    assert torch.equal(batch.discount[first], torch.zeros_like(batch.discount[first]))
+    second = batch.obs[:, 1] == 1
+    assert torch.allclose(batch.reward[second], torch.tensor(reward_of(0, 1)))
+
+
+def test_nstep_needs_n_steps_in_one_episode():
+    buffer = make_buffer()
+    fill(buffer, [2, 2])
+    with pytest.raises(ValueError, match="3-step successor"):
+        buffer.sample(8, nstep=3)
+    assert len(buffer.sample(8, nstep=2)) == 8

@@ -18,3 +18,31 @@ def tiny_exploration(**overrides) -> ExplorationConfig:
     kw = dict(rnd_rep_dim=16, contrastive_hidden_dim=32, ce_k=4)
     kw.update(overrides)
     return ExplorationConfig(**kw)
+
+
+# Tiny widths for every config section a registered method may have (a section not listed here
+# keeps its small-preset widths, which are still fast enough for a few hundred frames).
+TINY_SECTIONS = {
+    "fb": dict(z_dim=D, hidden_dim=H, feature_dim=E, backward_hidden_dim=H, batch_size=32),
+    "exploration": dict(rnd_rep_dim=16, contrastive_hidden_dim=32, ce_k=4),
+    "ddpg": dict(hidden_dim=H, batch_size=32),
+    "rnd": dict(hidden_dim=H, rep_dim=16),
+    "disagreement": dict(hidden_dim=H),
+    "icm_apt": dict(hidden_dim=H, rep_dim=16, knn_k=4),
+    "proto": dict(pred_dim=16, proj_dim=32, num_protos=16, queue_size=64),
+    "cic": dict(hidden_dim=H, knn_k=4),
+}
+
+
+def tiny_run_config(agent: str, **top_level):
+    """The small-preset run config of a registered method with tiny widths, on the maze by default
+    (episodes of 1000 cheap steps), seed frames 500 and an update every 4 steps."""
+    from dvfb.agents import get_spec
+    from dvfb.config import merge
+    from dvfb.workflows.config import preset_config
+
+    top = dict(domain="point_mass_maze", frames=1000, seed_frames=500, update_every=4, checkpoint_every=1000,
+               log_every=250, torch_threads=1)
+    top.update(top_level)
+    config = preset_config("small", agent, **top)
+    return merge(config, {name: TINY_SECTIONS[name] for name in get_spec(agent).sections if name in TINY_SECTIONS})
