@@ -2,8 +2,10 @@
 # The CPU-scale experiment of docs/results/cpu_experiment.md: DVFB vs FB, small preset, seed 0,
 # pre-trained on point_mass_maze and walker, zero-shot on every task of each domain, plus a
 # uniform-random policy. Runs one job at a time (the machine has 2 cores).
-#   usage: scripts/cpu_experiment.sh [FRAMES] [OUT_DIR]
+#   usage: [AGENTS="dvfb fb"] [DOMAINS="point_mass_maze walker"] scripts/cpu_experiment.sh [FRAMES] [OUT_DIR]
 # Re-running with a larger FRAMES resumes each run from its last checkpoint and extends it.
+# The baselines' rows (docs/results/baselines.md) are the same protocol with
+#   AGENTS="rnd disagreement icm_apt proto" DOMAINS=walker scripts/cpu_experiment.sh 30000 runs/baselines
 set -euo pipefail
 FRAMES=${1:-30000}
 OUT=${2:-runs/cpu_experiment}
@@ -12,9 +14,11 @@ DVFB=${DVFB:-dvfb}
 # the machine is shared (two OpenMP threads on two busy cores do not).
 THREADS=${THREADS:-1}
 mkdir -p "$OUT"
-for domain in point_mass_maze walker; do
+AGENTS=${AGENTS:-dvfb fb}
+DOMAINS=${DOMAINS:-point_mass_maze walker}
+for domain in $DOMAINS; do
   "$DVFB" random-policy --domain "$domain" --episodes 10 --output "$OUT/random_${domain}.json" --overwrite
-  for agent in dvfb fb; do
+  for agent in $AGENTS; do
     run="$OUT/${agent}_${domain}_s0"
     done_frames=0
     if [ -f "$run/pretrain_summary.json" ]; then
@@ -34,10 +38,10 @@ for domain in point_mass_maze walker; do
   done
 done
 
-# Fine-tuning (algorithm.md §9) of both walker agents on walker_walk, with the small preset's
-# fine-tuning defaults (20k frames, an evaluation of 5 episodes every 5k frames).
-if [ "${FINETUNE:-1}" = 1 ]; then
-  for agent in dvfb fb; do
+# Fine-tuning of every walker agent on walker_walk by its family's protocol, with the small
+# preset's fine-tuning defaults (20k frames, an evaluation of 5 episodes every 5k frames).
+if [ "${FINETUNE:-1}" = 1 ] && [[ " $DOMAINS " == *" walker "* ]]; then
+  for agent in $AGENTS; do
     run="$OUT/${agent}_walker_s0"
     if [ ! -f "$run/finetune/walker_walk/finetune_summary.json" ]; then
       "$DVFB" finetune "$run" --task walker_walk --no-progress --overwrite
