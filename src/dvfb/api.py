@@ -1,0 +1,93 @@
+"""The Python API: ``dvfb.load(run_dir)`` gives a pre-trained agent to infer a task and act with.
+
+    import dvfb
+    model = dvfb.load("runs/dvfb_walker_small_s0")
+    z = model.infer_z(reward_fn=lambda next_obs: next_obs[:, 0])  # or goal=..., or samples
+    act = model.policy(z)
+    action = act(obs)
+
+The object wraps the run's agent (through the registry, any method) and the zero-shot machinery of
+:mod:`dvfb.workflows.zeroshot`; it writes nothing into the run directory.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from dvfb.agents import get_spec
+from dvfb.config import merge
+from dvfb.errors import ConfigError
+from dvfb.workflows.common import load_pretrained_agent, open_pretrained_run
+
+
+class PretrainedAgent:
+    """A pre-training run's agent, loaded from a snapshot (the newest by default).
+
+    ``infer_z`` turns a task into the agent's skill (methods that infer skills: FB, DVFB);
+    ``act`` and ``policy`` act with a skill, or without one for single-policy methods.
+    """
+
+    def __init__(self, run_dir: str | Path, snapshot: int | None = None, device: str | None = None):
+        self.run, self.config = open_pretrained_run(run_dir)
+        self.agent, self.snapshot = load_pretrained_agent(self.run, self.config, snapshot, device)
+        self.spec = get_spec(self.config.agent)
+
+    @property
+    def name(self) -> str:
+        return self.config.agent
+
+    def infer_z(self, obs=None, next_obs=None, rewards=None, *, reward_fn: Callable | None = None,
+                goal=None, **inference) -> torch.Tensor:
+        """The skill of a task, from exactly one of:
+
+        * reward-labelled samples ``(obs, next_obs, rewards)`` (arrays ``(N, O)``, ``(N, O)``, ``(N,)``);
+        * ``reward_fn(next_obs (N, O)) -> rewards (N,)``, applied to the run's own replay states;
+        * ``goal``, an observation to reach.
+
+        ``inference`` overrides the run's inference options (e.g. ``reward_quantile=None``).
+        """
+        from dvfb.workflows.zeroshot import infer_from_reward_fn
+
+        given = [rewards is not None, reward_fn is not None, goal is not None]
+        if sum(given) != 1:
+            raise ConfigError("infer_z needs exactly one of (obs, next_obs, rewards), reward_fn= or goal=")
+        if self.spec.zero_shot != "reward_inference":
+            raise ConfigError(f"{self.name!r} has a single policy and no skill to infer; call policy() without z")
+        cfg = merge(self.config.inference, inference)
+        device = self.agent.device
+        if goal is not None:
+            return self.agent.skill_from_goal(torch.as_tensor(np.asarray(goal), dtype=torch.float32))
+        if reward_fn is not None:
+            return infer_from_reward_fn(self.agent, self.run, self.config, reward_fn, cfg)[0]
+        if obs is None or next_obs is None:
+            raise ConfigError("infer_z from samples needs obs, next_obs and rewards")
+
+        def tensor(x):
+            return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=device)
+
+        obs_t, next_t, reward_t = tensor(obs), tensor(next_obs), tensor(rewards).reshape(-1)
+        if not (obs_t.shape[0] == next_t.shape[0] == reward_t.shape[0]):
+            raise ConfigError(f"obs, next_obs and rewards have {obs_t.shape[0]}, {next_t.shape[0]} and "
+                              f"{reward_t.shape[0]} rows; they must match")
+        return self.agent.infer_skill(obs_t, next_t, reward_t, cfg)[0]
+
+    def act(self, obs: np.ndarray, z: torch.Tensor | None = None, explore: bool = False) -> np.ndarray:
+        """One action: the policy's mean (or a rollout sample with ``explore``)."""
+        if z is None and self.agent.skill_dim:
+            raise ConfigError(f"{self.name!r} acts with a skill: pass z (from infer_z)")
+        if z is not None:
+            z = torch.as_tensor(np.asarray(z) if not isinstance(z, torch.Tensor) else z, dtype=torch.float32)
+        return self.agent.act(np.asarray(obs, dtype=np.float32), z, explore)
+
+    def policy(self, z: torch.Tensor | None = None, explore: bool = False) -> Callable[[np.ndarray], np.ndarray]:
+        """``obs -> action`` with the skill fixed."""
+        return lambda obs: self.act(obs, z, explore)
+
+
+def load(run_dir: str | Path, snapshot: int | None = None, device: str | None = None) -> PretrainedAgent:
+    """Load a pre-training run's agent (see :class:`PretrainedAgent`)."""
+    return PretrainedAgent(run_dir, snapshot, device)

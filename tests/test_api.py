@@ -1,0 +1,55 @@
+"""The Python API: dvfb.load(run) -> infer a skill (samples, reward function, goal) and act."""
+
+import numpy as np
+import pytest
+import torch
+
+import dvfb
+from dvfb import envs
+from dvfb.errors import ConfigError
+from dvfb.workflows.pretrain import pretrain
+from tiny import tiny_run_config
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("api")
+    for agent in ("dvfb", "rnd"):
+        pretrain(tiny_run_config(agent), root / agent, progress=False)
+    return root
+
+
+def test_load_infer_and_act(runs):
+    model = dvfb.load(runs / "dvfb")
+    assert model.name == "dvfb" and model.snapshot == 1000
+    env = envs.make("point_mass_maze_reach_top_left", seed=0)
+    obs, _ = env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    samples = rng.normal(size=(64, obs.shape[0])).astype(np.float32)
+    rewards = samples[:, 0]
+    z = model.infer_z(samples, samples, rewards, reward_quantile=None)
+    expected, _ = model.agent.infer_z(torch.as_tensor(samples), torch.as_tensor(samples), torch.as_tensor(rewards), None)
+    torch.testing.assert_close(z, expected)
+    assert z.shape == (model.agent.skill_dim,)
+    torch.testing.assert_close(model.infer_z(goal=obs), model.agent.infer_z_from_goal(torch.as_tensor(obs)))
+    z_fn = model.infer_z(reward_fn=lambda next_obs: -np.abs(next_obs[:, 0]))
+    assert z_fn.shape == z.shape and torch.isfinite(z_fn).all()
+    policy = model.policy(z)
+    action = policy(obs)
+    assert action.shape == env.action_space.shape and np.all(np.abs(action) < 1)
+    np.testing.assert_array_equal(action, model.agent.act(obs, z, explore=False))
+
+
+def test_single_policy_method_and_bad_calls(runs):
+    model = dvfb.load(runs / "rnd")
+    obs, _ = envs.make("point_mass_maze_reach_top_left", seed=0).reset(seed=0)
+    assert model.policy()(obs).shape == (2,)
+    with pytest.raises(ConfigError, match="single policy"):
+        model.infer_z(goal=obs)
+    skilled = dvfb.load(runs / "dvfb")
+    with pytest.raises(ConfigError, match="exactly one"):
+        skilled.infer_z()
+    with pytest.raises(ConfigError, match="pass z"):
+        skilled.act(obs)
+    with pytest.raises(ConfigError, match="rows"):
+        skilled.infer_z(np.zeros((3, 4)), np.zeros((2, 4)), np.zeros(3))
