@@ -3,30 +3,42 @@
 Sections (``--only`` picks a subset; all run by default):
 
 * ``peak``      -- this machine's matrix-multiply peak, measured in the same run: the best of a few
-  square products (2048^3 on CPU, 8192^3 on CUDA) in fp32 and bf16. Every GFLOP/s figure below is
-  also given as a fraction of this fp32 (or, for bf16 rows, bf16) peak. Always measured.
-* ``learner``   -- ms per ``agent.update(batch)`` for DVFB and FB at the ``paper`` preset (H=1024,
-  N=1024), the ``small`` preset and the "hidden 256" configuration (see CONFIGS), in fp32 and bf16
-  (``--precisions``); FLOPs of one real update counted with ``torch.utils.flop_counter``; achieved
-  GFLOP/s; the replay sampling time (not included in ms/update); peak memory (see MEMORY below).
-  ``--compile`` adds torch.compile rows for the small preset, with the compile time.
+  square products (2048^3 on CPU, 8192^3 on CUDA) in fp32, and in bf16 when bf16 learner rows are
+  requested (``--precisions``). Every GFLOP/s figure below is also given as a fraction of this
+  fp32 (or, for bf16 rows, bf16) peak. Always measured.
+* ``learner``   -- ms per ``agent.update(batch)`` for every registered agent (``--agents``; default
+  all of ``dvfb.agents.agent_names()``: fb, dvfb and the URLB-style baselines rnd, disagreement,
+  icm_apt, proto), each built by ``make_agent`` from its run config ``preset_config(preset, agent)``
+  and fed batches drawn as its ``replay_needs()`` says (batch size, discount, n-step, s_{t+2}).
+  Configurations (see CONFIGS): the ``paper`` preset (H=1024, N=1024) and the ``small`` preset
+  apply to every agent; the FB configurations ``hidden256`` and ``hidden256_wide`` override the
+  ``fb`` / ``exploration`` sections and apply only to agents that have one of them (FB, DVFB; the
+  others are skipped with a one-line note). In fp32 and bf16 (``--precisions``); FLOPs of one
+  real update counted with ``torch.utils.flop_counter``; achieved GFLOP/s; the replay sampling
+  time (not included in ms/update); peak memory (see MEMORY below). ``--compile`` adds
+  torch.compile rows for the small preset, with the compile time. A row records the agent's
+  config sections; its ``H`` is the ``hidden_dim`` of the first section that has one (``fb`` for
+  FB/DVFB, ``ddpg`` for the baselines), ``N`` the batch size of ``replay_needs()``, and ``E`` /
+  ``Hb`` the FB feature and B hidden widths (``-`` for agents without them).
 * ``scaling``   -- ms/update of DVFB over a grid of hidden widths x batch sizes (paper widths
   otherwise, see CONFIGS); ``--scaling-hidden`` / ``--scaling-batch`` limit the grid.
-* ``collector`` -- environment steps/s of the pre-training loop without updates, against raw
+* ``collector`` -- (DVFB) environment steps/s of the pre-training loop without updates, against raw
   dm_control stepping in the same process, in alternating chunks (as bench/env_throughput.py):
   ``seed phase`` = uniform actions + dvfb env step + replay add; ``acting`` = ``agent.act`` (actor
   forward + rollout noise) + dvfb env step + replay add, for the small and paper actors. Both
   replicate the loop body of dvfb.workflows.pretrain (z resampling and its host copy, non-finite
   action check, episode resets) minus the update. Also: microseconds per ``agent.act``.
-* ``e2e``       -- frames/s of ``python -m dvfb pretrain`` at the small preset (default 6000 frames
+* ``e2e``       -- frames/s of ``python -m dvfb pretrain --agent E2E_AGENT`` (``--e2e-agent``,
+  default dvfb) at the small preset (default 6000 frames
   of which 2000 seed frames), as a subprocess into a temporary run directory: the run's own
   figure over all frames (process start-up excluded), and the steady-state rate of the training
   phase from its fps logged every 500 frames.
 
 MEMORY. CPU: each configuration runs in a fresh subprocess (so no earlier allocation is reused),
-which reports its resident set size (RSS) just before the first update and the peak RSS (Linux
-VmHWM, reset through /proc/self/clear_refs just before the first update) during the warm-up and
-two further updates. ``peak RSS`` is the whole process (torch runtime, replay buffer, networks,
+rebuilt there from the row's whole run config (``run_config_from_dict``), which reports its
+resident set size (RSS) just before the first update and the peak RSS (Linux VmHWM, reset
+through /proc/self/clear_refs just before the first update) during the warm-up and two further
+updates. ``peak RSS`` is the whole process (torch runtime, replay buffer, networks,
 optimiser states, autograd buffers); ``update +`` is the peak minus the RSS before the first
 update: what the updates add (Adam states created at the first step, gradients, activations,
 temporaries, allocator slack). ``state MB`` is computed exactly from the tensors: parameters of
@@ -34,7 +46,8 @@ all networks (targets included) plus Adam's two moments. CUDA: ``torch.cuda.max_
 during the updates (the caching allocator's live tensors), same columns.
 
 Usage: python bench/learner.py [--quick] [--only learner,scaling,collector,e2e] [--threads N]
-       [--device auto|cpu|cuda] [--precisions fp32,bf16] [--compile] [--output PATH]
+       [--device auto|cpu|cuda] [--agents fb,dvfb,...] [--configs paper,small,...]
+       [--precisions fp32,bf16] [--compile] [--output PATH]
 Writes bench/results/learner.json (``--output``). ``python bench/run.py`` (``make bench``) runs this,
 bench/env_throughput.py and bench/preset_update_ms.py.
 """
@@ -42,7 +55,6 @@ bench/env_throughput.py and bench/preset_update_ms.py.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime
 import importlib.metadata
 import json
@@ -64,15 +76,13 @@ import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from dvfb.agents import make_agent
-from dvfb.agents.dvfb import ExplorationConfig
-from dvfb.agents.fb import FBConfig
+from dvfb.agents import agent_names, get_spec, make_agent
 from dvfb.agents.perf import PerfConfig, bf16_matmul_is_fast
-from dvfb.config import merge
+from dvfb.config import merge, replace, to_dict
 from dvfb.replay import ReplayBuffer
 from dvfb.runs import read_metrics
 from dvfb.workflows.common import MetricWindow, check_action
-from dvfb.workflows.config import preset_config
+from dvfb.workflows.config import PretrainConfig, agent_sections, preset_config, run_config_from_dict
 
 HERE = Path(__file__).resolve().parent
 RESULTS_PATH = HERE / "results" / "learner.json"
@@ -85,7 +95,10 @@ def paper_widths_at(hidden: int, batch: int) -> dict:
     return {"fb": {"hidden_dim": hidden, "batch_size": batch}, "exploration": {"contrastive_hidden_dim": hidden}}
 
 
-# The configurations of the learner rows.
+# The configurations of the learner rows: name -> (preset, overrides of the run config).
+# ``paper`` and ``small`` are the presets of every agent (preset_config(preset, agent)). The others
+# override the FB sections (``fb``, ``exploration``): they apply to an agent only in the sections
+# it has, and not at all to an agent that has none of them (see config_applies).
 # "hidden256" is the performance issue's "hidden 256, batch 256" row: every width the paper ties
 # to the network size at 256 (H, the feature width E, the B hidden width Hb, the contrastive
 # encoders) and the batch at 256; the RND output stays 512. Its FLOP count (3.91 GFLOP per DVFB
@@ -102,10 +115,15 @@ CONFIGS = {
     "hidden256_wide": ("paper", paper_widths_at(256, 256)),
 }
 CONFIG_NOTES = {
-    "paper": "preset paper: H=1024, E=512, Hb=526, N=1024, contrastive H=1024, RND out 512",
-    "small": "preset small: H=256, E=128, Hb=256, N=256, contrastive H=256, RND out 128",
-    "hidden256": "the issue's hidden 256 row: H=E=Hb=256, N=256, contrastive H=256, RND out 512",
-    "hidden256_wide": "paper widths with H=256 and N=256: E=512, Hb=526, contrastive H=256, RND out 512",
+    "paper": "preset paper, every agent. FB/DVFB: H=1024, E=512, Hb=526, N=1024, contrastive H=1024, RND out "
+             "512; DDPG baselines: H=1024, N=1024, n-step 3, reward modules 1024 wide (RND/ICM-APT out 512, "
+             "Disagreement 5 models, Proto 512 prototypes)",
+    "small": "preset small, every agent. FB/DVFB: H=256, E=128, Hb=256, N=256, contrastive H=256, RND out 128; "
+             "DDPG baselines: H=256, N=256, n-step 3, reward modules 256 wide (RND/ICM-APT out 128; Proto "
+             "keeps its paper sizes)",
+    "hidden256": "FB/DVFB only: the issue's hidden 256 row: H=E=Hb=256, N=256, contrastive H=256, RND out 512",
+    "hidden256_wide": "FB/DVFB only: paper widths with H=256 and N=256: E=512, Hb=526, contrastive H=256, "
+                      "RND out 512",
 }
 
 
@@ -118,19 +136,42 @@ def sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def model_configs(name: str, overrides: dict | None = None) -> tuple[FBConfig, ExplorationConfig]:
+def config_applies(name: str, agent: str) -> bool:
+    """Whether the learner configuration ``name`` applies to ``agent``: the presets apply to every
+    agent; a configuration overriding sections applies to agents that have at least one of them."""
+    changes = CONFIGS[name][1]
+    return not changes or bool(set(changes) & set(get_spec(agent).sections))
+
+
+def own_sections(agent: str, changes: dict) -> dict:
+    """The part of section overrides that concerns ``agent`` (e.g. FB has ``fb`` but no ``exploration``)."""
+    sections = get_spec(agent).sections
+    return {k: v for k, v in changes.items() if k in sections}
+
+
+def model_config(name: str, agent: str, overrides: dict | None = None) -> PretrainConfig:
+    """The run config of learner configuration ``name`` for ``agent`` (its preset, then the
+    configuration's overrides of the agent's own sections, then ``overrides``)."""
     preset, changes = CONFIGS[name]
-    config = preset_config(preset)
+    config = preset_config(preset, agent)
+    changes = own_sections(agent, changes)
     config = merge(config, changes) if changes else config
     if overrides:
         config = merge(config, overrides)
-    return config.fb, config.exploration
+    return config
 
 
-def scaling_configs(hidden: int, batch: int) -> tuple[FBConfig, ExplorationConfig]:
+def scaling_config(hidden: int, batch: int, agent: str = "dvfb") -> PretrainConfig:
     """Paper widths with H = ``hidden`` wherever the paper uses H, and batch ``batch``."""
-    config = merge(preset_config("paper"), paper_widths_at(hidden, batch))
-    return config.fb, config.exploration
+    return merge(preset_config("paper", agent), own_sections(agent, paper_widths_at(hidden, batch)))
+
+
+def first_field(sections: dict, name: str):
+    """``name`` from the first of the agent's sections (registry order) that has it, else None."""
+    for section in sections.values():
+        if isinstance(section, dict) and name in section:
+            return section[name]
+    return None
 
 
 def env_dims(domain: str) -> tuple[int, int]:
@@ -146,19 +187,23 @@ def filled_replay(obs_dim: int, action_dim: int, z_dim: int, device: torch.devic
     rng = np.random.default_rng(seed)
     obs = rng.standard_normal((steps + 1, obs_dim)).astype(np.float32)
     actions = rng.uniform(-1, 1, (steps, action_dim)).astype(np.float32)
-    zs = rng.standard_normal((steps, z_dim)).astype(np.float32)
+    zs = rng.standard_normal((steps, z_dim)).astype(np.float32) if z_dim else None
     for t in range(steps):
         if t % episode_length == 0:
             replay.start_episode(obs[t])
-        replay.add(actions[t], 0.0, 1.0, obs[t + 1], zs[t])
+        replay.add(actions[t], 0.0, 1.0, obs[t + 1], zs[t] if zs is not None else None)
     return replay
 
 
-def build(agent_name: str, fb: FBConfig, exploration: ExplorationConfig, perf: PerfConfig,
-          device: torch.device, obs_dim: int, action_dim: int, seed: int = 0):
+def build(agent_name: str, config: PretrainConfig, device: torch.device, obs_dim: int, action_dim: int,
+          seed: int = 0, perf: PerfConfig | None = None):
+    """The agent from its run config (``perf`` replaces the config's), and a filled replay with
+    the agent's skill width."""
+    if perf is not None:
+        config = replace(config, perf=perf)
     torch.manual_seed(seed)
-    agent = make_agent(agent_name, obs_dim, action_dim, fb, exploration, device, perf)
-    return agent, filled_replay(obs_dim, action_dim, fb.z_dim, device)
+    agent = make_agent(agent_name, obs_dim, action_dim, config, device)
+    return agent, filled_replay(obs_dim, action_dim, agent.skill_dim, device)
 
 
 def state_bytes(agent) -> int:
@@ -173,15 +218,14 @@ def state_bytes(agent) -> int:
 
 def time_updates(agent, replay: ReplayBuffer, warmup: int, repeats: int, device: torch.device) -> dict:
     """Median / min ms per update and per replay sample, over ``repeats`` timed updates."""
-    c = agent.config
-    need_future = c.backward_input == "code_exact"
+    needs = agent.replay_needs()
     for _ in range(warmup):
-        agent.update(replay.sample(c.batch_size, c.discount, need_future=need_future))
+        agent.update(needs.sample(replay))
     sync(device)
     update_s, sample_s = [], []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        batch = replay.sample(c.batch_size, c.discount, need_future=need_future)
+        batch = needs.sample(replay)
         sync(device)
         t1 = time.perf_counter()
         agent.update(batch)
@@ -205,9 +249,8 @@ def matmul_breakdown(agent, replay: ReplayBuffer, updates: int, device: torch.de
         return None
     from torch.profiler import ProfilerActivity, profile
 
-    c = agent.config
-    batches = [replay.sample(c.batch_size, c.discount, need_future=c.backward_input == "code_exact")
-               for _ in range(updates)]
+    needs = agent.replay_needs()
+    batches = [needs.sample(replay) for _ in range(updates)]
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         start = time.perf_counter()
         for batch in batches:
@@ -218,8 +261,7 @@ def matmul_breakdown(agent, replay: ReplayBuffer, updates: int, device: torch.de
 
 
 def count_flops(agent, replay: ReplayBuffer) -> int:
-    c = agent.config
-    batch = replay.sample(c.batch_size, c.discount, need_future=c.backward_input == "code_exact")
+    batch = agent.replay_needs().sample(replay)
     with FlopCounterMode(display=False) as counter:
         agent.update(batch)
     return int(counter.get_total_flops())
@@ -258,14 +300,13 @@ def _rss_kb(field: str) -> int:
 
 
 def memory_probe(spec: dict) -> dict:
-    """Run in a fresh process: build, then measure RSS (or CUDA memory) over three updates."""
+    """Run in a fresh process: build from the run config, then measure RSS (or CUDA memory) over
+    three updates."""
     device = torch.device(spec["device"])
     torch.set_num_threads(spec["threads"])
-    fb = FBConfig(**spec["fb"])
-    exploration = ExplorationConfig(**spec["exploration"])
-    perf = PerfConfig(**spec["perf"])
-    agent, replay = build(spec["agent"], fb, exploration, perf, device, spec["obs_dim"], spec["action_dim"])
-    need_future = fb.backward_input == "code_exact"
+    config = run_config_from_dict(spec["config"], "memory probe spec")
+    agent, replay = build(spec["agent"], config, device, spec["obs_dim"], spec["action_dim"])
+    needs = agent.replay_needs()
     result: dict = {}
     if device.type == "cuda":
         sync(device)
@@ -279,7 +320,7 @@ def memory_probe(spec: dict) -> dict:
         except OSError:
             result["method"] = "ru_maxrss (not resettable: includes set-up)"
     for _ in range(3):
-        agent.update(replay.sample(fb.batch_size, fb.discount, need_future=need_future))
+        agent.update(needs.sample(replay))
     sync(device)
     if device.type == "cuda":
         peak = torch.cuda.max_memory_allocated(device)
@@ -295,9 +336,9 @@ def memory_probe(spec: dict) -> dict:
     return result
 
 
-def measure_memory(agent_name, fb, exploration, perf, device, threads, obs_dim, action_dim) -> dict:
-    spec = {"agent": agent_name, "fb": dataclasses.asdict(fb), "exploration": dataclasses.asdict(exploration),
-            "perf": dataclasses.asdict(perf), "device": str(device), "threads": threads,
+def measure_memory(agent_name, config: PretrainConfig, device, threads, obs_dim, action_dim) -> dict:
+    """:func:`memory_probe` in a fresh subprocess, given the whole run config as JSON."""
+    spec = {"agent": agent_name, "config": to_dict(config), "device": str(device), "threads": threads,
             "obs_dim": obs_dim, "action_dim": action_dim}
     proc = subprocess.run([sys.executable, __file__, "--memory-probe", json.dumps(spec)],
                           capture_output=True, text=True, check=False)
@@ -310,20 +351,25 @@ def measure_memory(agent_name, fb, exploration, perf, device, threads, obs_dim, 
 # Learner and scaling
 
 
-def learner_row(agent_name, config_name, fb, exploration, perf, device, args, obs_dim, action_dim,
+def learner_row(agent_name, config_name, config: PretrainConfig, perf, device, args, obs_dim, action_dim,
                 peaks, memory: bool, breakdown: bool = True) -> dict:
-    heavy = fb.hidden_dim * fb.batch_size >= 1024 * 1024
-    warmup, repeats = (1, 2) if args.quick and heavy else (1, 3) if heavy else (2, 5) if args.quick else (3, 10)
+    """One row: ``agent_name`` built from the run ``config`` with execution options ``perf``."""
+    config = replace(config, perf=perf)
+    sections = agent_sections(config)
+    hidden = first_field(sections, "hidden_dim")
     start = time.perf_counter()
     # The peak right before and after the row's timing: on a shared (virtual) machine the matmul
     # speed drifts by tens of percent within minutes, so the row is compared with its own moment.
     dtypes = (torch.float32, torch.bfloat16) if perf.precision == "bf16" else (torch.float32,)
     local_peaks = {d: [matmul_peak(device, d, True, rounds=2)["gflops"]] for d in dtypes}
-    agent, replay = build(agent_name, fb, exploration, perf, device, obs_dim, action_dim)
+    agent, replay = build(agent_name, config, device, obs_dim, action_dim)
+    needs = agent.replay_needs()
+    heavy = (hidden or 0) * needs.batch_size >= 1024 * 1024
+    warmup, repeats = (1, 2) if args.quick and heavy else (1, 3) if heavy else (2, 5) if args.quick else (3, 10)
     compile_s = None
     if perf.compile or perf.cuda_graphs:
         t0 = time.perf_counter()
-        agent.update(replay.sample(fb.batch_size, fb.discount))  # compiles
+        agent.update(needs.sample(replay))  # compiles
         sync(device)
         compile_s = time.perf_counter() - t0
     timing = time_updates(agent, replay, warmup, repeats, device)
@@ -340,9 +386,14 @@ def learner_row(agent_name, config_name, fb, exploration, perf, device, args, ob
         "section": "learner", "agent": agent_name, "config": config_name, "device": str(device),
         "threads": torch.get_num_threads(),
         "precision": perf.precision, "compile": perf.compile, "cuda_graphs": perf.cuda_graphs,
-        "hidden_dim": fb.hidden_dim, "feature_dim": fb.feature_dim, "backward_hidden_dim": fb.backward_hidden_dim,
-        "batch_size": fb.batch_size, "contrastive_hidden_dim": exploration.contrastive_hidden_dim,
-        "rnd_rep_dim": exploration.rnd_rep_dim, "warmup": warmup, "repeats": repeats,
+        # Sizes for the table, read generically from the agent's own sections (None where the
+        # agent has no such field); "sections" keeps them all.
+        "hidden_dim": hidden, "feature_dim": first_field(sections, "feature_dim"),
+        "backward_hidden_dim": first_field(sections, "backward_hidden_dim"),
+        "batch_size": needs.batch_size, "nstep": needs.nstep, "skill_dim": agent.skill_dim,
+        "contrastive_hidden_dim": first_field(sections, "contrastive_hidden_dim"),
+        "rnd_rep_dim": first_field(sections, "rnd_rep_dim"), "sections": sections,
+        "warmup": warmup, "repeats": repeats,
         **timing, "gflop_per_update": flops / 1e9, "gflops": gflops,
         "fraction_of_fp32_peak": gflops / fp32_peak, "fraction_of_dtype_peak": gflops / dtype_peak,
         "fp32_peak_local_gflops": fp32_peak, "dtype_peak_local_gflops": dtype_peak,
@@ -357,36 +408,61 @@ def learner_row(agent_name, config_name, fb, exploration, perf, device, args, ob
         row["matmul_share"] = breakdown["matmul_ms_per_update"] / breakdown["profiled_ms_per_update"]
     del agent, replay
     if memory:
-        row["memory"] = measure_memory(agent_name, fb, exploration, perf, device, torch.get_num_threads(),
-                                       obs_dim, action_dim)
+        row["memory"] = measure_memory(agent_name, config, device, torch.get_num_threads(), obs_dim, action_dim)
     row["wall_s"] = time.perf_counter() - start
     return row
 
 
+def skipped_configs(args) -> dict[str, list[str]]:
+    """Learner configurations (rows and --compile rows) that do not apply to some of ``--agents``:
+    config -> those agents (see :func:`config_applies`)."""
+    names = args.configs.split(",") + (args.compile_configs.split(",") if args.compile else [])
+    skipped = {}
+    for name in dict.fromkeys(names):
+        agents = [a for a in args.agent_list if not config_applies(name, a)]
+        if agents:
+            skipped[name] = agents
+    return skipped
+
+
+def skipped_note(skipped: dict[str, list[str]]) -> str | None:
+    if not skipped:
+        return None
+    return "note: not run (the configuration overrides sections the agent lacks): " + "; ".join(
+        f"{name} for {', '.join(agents)}" for name, agents in skipped.items())
+
+
 def run_learner(args, devices, peaks, obs_dim, action_dim) -> list[dict]:
-    """Every learner row, ``--rounds`` times round-robin (see :func:`merge_rounds`)."""
+    """Every learner row, ``--rounds`` times round-robin (see :func:`merge_rounds`). A configuration
+    runs only for the agents it applies to (:func:`config_applies`)."""
     specs = []
     precisions = [p for p in args.precisions.split(",") if p]
     for device in devices:
         for config_name in args.configs.split(","):
             for precision in precisions:
-                for agent_name in args.agents.split(","):
+                for agent_name in args.agent_list:
+                    if not config_applies(config_name, agent_name):
+                        continue
                     for threads in args.thread_counts:
                         specs.append((device, config_name, PerfConfig(precision=precision), agent_name, threads))
         if args.compile:
             for config_name in args.compile_configs.split(","):
-                for agent_name in args.agents.split(","):
+                for agent_name in args.agent_list:
+                    if not config_applies(config_name, agent_name):
+                        continue
                     perf = PerfConfig(compile=True, cuda_graphs=device.type == "cuda" and args.cuda_graphs)
                     specs.append((device, config_name, perf, agent_name, args.thread_counts[0]))
+    note = skipped_note(skipped_configs(args))
+    if note:
+        print(f"  {note}", file=sys.stderr)
     rounds: dict[int, list[dict]] = {i: [] for i in range(len(specs))}
     for r in range(args.rounds):
         for i, (device, config_name, perf, agent_name, threads) in enumerate(specs):
             if r > 0 and perf.compile:
                 continue  # compiled rows: one round (each round recompiles from scratch)
             torch.set_num_threads(threads)
-            fb, exploration = model_configs(config_name)
-            row = learner_row(agent_name, config_name, fb, exploration, perf, device, args, obs_dim, action_dim,
-                              peaks, memory=r == 0 and not args.no_memory and not perf.compile,
+            row = learner_row(agent_name, config_name, model_config(config_name, agent_name), perf, device, args,
+                              obs_dim, action_dim, peaks, memory=r == 0 and not args.no_memory and not perf.compile,
                               breakdown=r == 0)
             rounds[i].append(row)
             print_progress(row)
@@ -423,9 +499,8 @@ def run_scaling(args, devices, peaks, obs_dim, action_dim) -> list[dict]:
     for device in devices:
         for h in hidden:
             for n in batches:
-                fb, exploration = scaling_configs(h, n)
-                row = learner_row("dvfb", f"H{h}_N{n}", fb, exploration, PerfConfig(), device, args, obs_dim,
-                                  action_dim, peaks, memory=False)
+                row = learner_row("dvfb", f"H{h}_N{n}", scaling_config(h, n, "dvfb"), PerfConfig(), device, args,
+                                  obs_dim, action_dim, peaks, memory=False)
                 row["section"] = "scaling"
                 rows.append(row)
                 print_progress(row)
@@ -458,12 +533,12 @@ def collector_runner(env, agent, replay: ReplayBuffer, action_dim: int, seed_pha
         for _ in range(n_steps):
             if start:
                 obs, _ = env.reset()
-                z = agent.sample_z(1)[0]
+                z = agent.sample_skill(1)[0]
                 z_host = z.cpu().numpy()
                 replay.start_episode(obs)
                 start = False
             if step % update_z_every == 0:
-                z = agent.sample_z(1)[0]
+                z = agent.sample_skill(1)[0]
                 z_host = z.cpu().numpy()
             if seed_phase:
                 action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
@@ -497,27 +572,27 @@ def run_collector(args, device) -> dict:
     runners = {"raw dm_control": env_throughput.raw_runner(raw_env, raw_actions)}
     act_us = {}
     for name, preset in (("small", "small"), ("paper", "paper")):
-        fb, exploration = model_configs(preset)
         torch.manual_seed(0)
-        agent = make_agent("dvfb", obs_dim, action_dim, fb, exploration, device)
+        agent = make_agent("dvfb", obs_dim, action_dim, model_config(preset, "dvfb"), device)
+        z_dim = agent.skill_dim
         if name == "small":
-            replay = ReplayBuffer(100_000, obs_dim, action_dim, fb.z_dim,
+            replay = ReplayBuffer(100_000, obs_dim, action_dim, z_dim,
                                   max_episode_length=envs.TASKS[task].episode_length, device=device)
             runners["seed phase (uniform action + env + replay)"] = collector_runner(
                 envs.make(task, seed=0), agent, replay, action_dim, True, 0)
-        replay = ReplayBuffer(100_000, obs_dim, action_dim, fb.z_dim,
+        replay = ReplayBuffer(100_000, obs_dim, action_dim, z_dim,
                               max_episode_length=envs.TASKS[task].episode_length, device=device)
         runners[f"acting, {name} actor (act + env + replay)"] = collector_runner(
             envs.make(task, seed=0), agent, replay, action_dim, False, 0)
         if name == "small" and device.type == "cpu":
             # The same loop with the actor run through its torch modules (the path before
             # HostActor, and still the path on CUDA), for a before/after in the same run.
-            replay = ReplayBuffer(100_000, obs_dim, action_dim, fb.z_dim,
+            replay = ReplayBuffer(100_000, obs_dim, action_dim, z_dim,
                                   max_episode_length=envs.TASKS[task].episode_length, device=device)
             runners["acting, small actor, torch modules"] = collector_runner(
                 envs.make(task, seed=0), agent, replay, action_dim, False, 0, act=agent._act_torch)
         obs = np.zeros(obs_dim, np.float32)
-        z = agent.sample_z(1)[0]
+        z = agent.sample_skill(1)[0]
         reps = 300 if args.quick else 1000
         paths = {f"{name} actor": agent.act}
         if device.type == "cpu":
@@ -607,7 +682,7 @@ def mem(key):
 
 
 LEARNER_COLUMNS = (
-    ("agent", "agent", "<5", "{}"), ("config", "config", "<14", "{}"), ("dev", "device", "<4", "{}"),
+    ("agent", "agent", "<12", "{}"), ("config", "config", "<14", "{}"), ("dev", "device", "<4", "{}"),
     ("thr", "threads", ">3", "{}"),
     ("prec", lambda r: r["precision"] + ("+compile" if r.get("compile") else ""), "<13", "{}"),
     ("H", "hidden_dim", ">4", "{}"), ("E", "feature_dim", ">3", "{}"), ("Hb", "backward_hidden_dim", ">3", "{}"),
@@ -646,8 +721,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
                         help="auto: CPU rows, plus CUDA rows when torch sees a GPU")
     parser.add_argument("--domain", default="walker", help="domain whose observation/action sizes the learner uses")
-    parser.add_argument("--agents", default="dvfb,fb")
-    parser.add_argument("--configs", default="paper,small,hidden256,hidden256_wide", help="learner configurations: " + ", ".join(CONFIGS))
+    parser.add_argument("--agents", default=",".join(agent_names()),
+                        help="learner agents (default: every registered agent)")
+    parser.add_argument("--configs", default="paper,small,hidden256,hidden256_wide",
+                        help="learner configurations: " + ", ".join(CONFIGS) + " (paper and small apply to every "
+                             "agent, the others only to agents with an fb / exploration section)")
     parser.add_argument("--precisions", default="fp32,bf16", help="learner precisions (fp32, bf16)")
     parser.add_argument("--compile", action="store_true", help="add torch.compile rows (slow to compile)")
     parser.add_argument("--compile-configs", default="small", help="configurations of the --compile rows")
@@ -679,6 +757,10 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.configs.split(",") + (args.compile_configs.split(",") if args.compile else []):
         if name not in CONFIGS:
             parser.error(f"unknown config {name!r}; choose from {', '.join(CONFIGS)}")
+    args.agent_list = [a.strip() for a in args.agents.split(",") if a.strip()]
+    unknown = [a for a in args.agent_list if a not in agent_names()]
+    if unknown or not args.agent_list:
+        parser.error(f"unknown agent(s) {unknown}; choose from {', '.join(agent_names())}")
     try:
         args.thread_counts = [int(t) for t in args.threads.split(",")] if args.threads else [torch.get_num_threads()]
     except ValueError:
@@ -703,10 +785,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"threads {args.thread_counts}, devices {[str(d) for d in devices]}, sections {sections}",
           file=sys.stderr)
     peaks, peak_rows = {}, []
+    # The bf16 peak only when a bf16 learner row is requested: without bf16 matrix hardware one
+    # 2048^3 bf16 product can take minutes.
+    bf16_rows = "learner" in sections and "bf16" in args.precisions.split(",")
+    peak_dtypes = (torch.float32, torch.bfloat16) if bf16_rows else (torch.float32,)
     for threads in args.thread_counts:  # the matmul peak with every thread count the rows use
         torch.set_num_threads(threads)
         for device in devices:
-            for dtype in (torch.float32, torch.bfloat16):
+            for dtype in peak_dtypes:
                 peak = matmul_peak(device, dtype, args.quick)
                 peak.update(device=str(device), threads=threads)
                 peaks[(device.type, str(dtype).replace("torch.", ""), threads)] = peak["gflops"]
@@ -719,7 +805,8 @@ def main(argv: list[str] | None = None) -> int:
     report: dict = {
         "benchmark": "learner",
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "memory_probe"},
+        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()
+                     if k not in ("memory_probe", "agent_list")},
         "threads": args.thread_counts,
         "obs_dim": obs_dim, "action_dim": action_dim, "config_notes": CONFIG_NOTES,
         "machine": {"platform": platform.platform(), "python": platform.python_version(),
@@ -732,8 +819,11 @@ def main(argv: list[str] | None = None) -> int:
     out = []
     if "learner" in sections:
         report["learner"] = run_learner(args, devices, peaks, obs_dim, action_dim)
-        out += ["## Learner (ms per agent.update; sample ms = replay.sample, not included)",
-                table(report["learner"], LEARNER_COLUMNS), ""]
+        report["learner_skipped"] = skipped_configs(args)
+        note = skipped_note(report["learner_skipped"])
+        out += ["## Learner (ms per agent.update; sample ms = replay.sample, not included; H = hidden_dim of "
+                "the agent's first section with one, N = its replay_needs().batch_size)",
+                table(report["learner"], LEARNER_COLUMNS), ""] + ([note, ""] if note else [])
         out += [f"- {k}: {v}" for k, v in CONFIG_NOTES.items()] + [""]
     if "scaling" in sections:
         report["scaling"] = run_scaling(args, devices, peaks, obs_dim, action_dim)

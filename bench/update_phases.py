@@ -1,4 +1,4 @@
-"""Where one DVFB update spends its time: ms per phase of ``agent.update`` (algorithm.md §7.2).
+"""Where one DVFB update spends its time: ms per phase of ``agent.update`` (docs/methods.md §7.2).
 
     python bench/update_phases.py                       # hidden256 config, 1 and 2 torch threads
     python bench/update_phases.py --config small --threads 2
@@ -28,16 +28,15 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import learner  # noqa: E402
 
-from dvfb.agents.perf import PerfConfig  # noqa: E402
-
 PHASES = ("training_z", "_explore", "_fb_step", "_actor_step", "soft_update_targets")
 
 
 def measure(config: str, threads: int, updates: int) -> dict[str, float]:
     torch.set_num_threads(threads)
-    fb, exploration = learner.model_configs(config)
     obs_dim, action_dim = learner.env_dims("walker")
-    agent, replay = learner.build("dvfb", fb, exploration, PerfConfig(), torch.device("cpu"), obs_dim, action_dim)
+    agent, replay = learner.build("dvfb", learner.model_config(config, "dvfb"), torch.device("cpu"), obs_dim,
+                                  action_dim)
+    needs = agent.replay_needs()
     times: dict[str, list[float]] = defaultdict(list)
     for name in PHASES:  # time each phase through an instance attribute wrapping the method
         method = getattr(agent, name)
@@ -52,7 +51,7 @@ def measure(config: str, threads: int, updates: int) -> dict[str, float]:
     for i in range(5 + updates):
         if i == 5:
             times.clear()
-        batch = replay.sample(fb.batch_size, fb.discount)
+        batch = needs.sample(replay)
         start = time.perf_counter()
         agent.update(batch)
         times["update"].append(1e3 * (time.perf_counter() - start))
@@ -62,7 +61,8 @@ def measure(config: str, threads: int, updates: int) -> dict[str, float]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--config", default="hidden256", choices=list(learner.CONFIGS))
+    parser.add_argument("--config", default="hidden256",
+                        choices=[c for c in learner.CONFIGS if learner.config_applies(c, "dvfb")])
     parser.add_argument("--threads", default="1,2", help="comma-separated torch thread counts")
     parser.add_argument("--updates", type=int, default=20)
     args = parser.parse_args(argv)
