@@ -149,7 +149,7 @@ def bench_task(
     raw_env, raw_source = build_raw(task_name, seed)
 
     # The same actions for both, bit for bit as MuJoCo receives them: float32 in [-1, 1] for dvfb;
-    # for raw, their float64 image under the URLB affine map (tasks.md §3.5), which is the plain
+    # for raw, their float64 image under the URLB affine map (docs/tasks.md §3.5), which is the plain
     # float64 value for [-1, 1] actuators. Both sides therefore follow one identical trajectory.
     rng = np.random.default_rng(seed)
     actions = rng.uniform(-1.0, 1.0, size=(ACTION_POOL, env.action_space.shape[0]))

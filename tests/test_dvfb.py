@@ -1,4 +1,4 @@
-"""Tests for DVFB's exploration part and the pre-training update (algorithm.md §4.5-§4.6,
+"""Tests for DVFB's exploration part and the pre-training update (docs/methods.md §4.5-§4.6,
 §7.2-§7.7; §13 invariants 23-26 and 31): the NCE loss, the contrastive-entropy reward, RND, the
 exploration critic, gradient isolation of every step and the EMA of the targets."""
 

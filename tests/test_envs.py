@@ -1,4 +1,4 @@
-"""Tests of dvfb.envs against the environment spec (tasks.md), on real MuJoCo physics.
+"""Tests of dvfb.envs against the environment spec (docs/tasks.md), on real MuJoCo physics.
 
 Reward checks set a physics state by hand, then compare the task's reward with a value computed
 here, directly from the spec formula and MuJoCo's state arrays, without calling dvfb's helpers.
@@ -26,7 +26,7 @@ from gymnasium.error import ResetNeeded
 from dvfb.errors import ConfigError
 
 # ------------------------------------------------------------------------------------------------
-# Spec constants, written out independently of the package (tasks.md §0, §4, §5).
+# Spec constants, written out independently of the package (docs/tasks.md §0, §4, §5).
 
 SPEC_TASKS = {
     "walker": ["stand", "walk", "run", "flip"],
@@ -170,7 +170,7 @@ def test_task_builds_and_steps(name):
         assert type(reward) is float and 0.0 <= reward <= 1.0
         assert info["task_reward"] == reward
         assert terminated is False and truncated is False
-    # The observation is the task's observation dict concatenated in key order (tasks.md §2).
+    # The observation is the task's observation dict concatenated in key order (docs/tasks.md §2).
     expected = np.concatenate(
         [np.ravel(v) for v in dmc_env.task.get_observation(dmc_env.physics).values()]
     ).astype(np.float32)
@@ -260,7 +260,7 @@ def test_stock_tasks_match_dm_control_suite_with_urlb_action_scaling(domain, tas
 
 
 # ------------------------------------------------------------------------------------------------
-# Action mapping (tasks.md §3.5)
+# Action mapping (docs/tasks.md §3.5)
 
 
 def test_quadruped_action_scaling_is_affine_and_not_clipped():
@@ -287,7 +287,7 @@ def test_other_domains_pass_actions_through_unchanged():
 
 
 # ------------------------------------------------------------------------------------------------
-# Reward formulas (tasks.md §4), checked on hand-set states
+# Reward formulas (docs/tasks.md §4), checked on hand-set states
 
 
 def independent_subtree_angular_momentum(physics) -> np.ndarray:
@@ -467,7 +467,7 @@ def test_maze_step_reward_uses_the_raw_unclipped_control():
 
 
 # ------------------------------------------------------------------------------------------------
-# Maze layout and start state (tasks.md §4.5, §6)
+# Maze layout and start state (docs/tasks.md §4.5, §6)
 
 
 def push_mass(env, start_xy, action, steps=300) -> np.ndarray:
@@ -525,7 +525,7 @@ def test_maze_start_rng_is_seeded_and_independent_of_global_numpy_rng():
     np.random.uniform(size=10)
     second = envs.make("point_mass_maze_reach_top_left", seed=7).reset()[0]
     np.testing.assert_array_equal(first, second)
-    # Stream parity (tasks.md §4.5): the task RNG made the stock randomiser's two draws, and the
+    # Stream parity (docs/tasks.md §4.5): the task RNG made the stock randomiser's two draws, and the
     # start came from a RandomState(seed), as after the authors' np.random.seed(seed).
     env = envs.make("point_mass_maze_reach_top_left", seed=7)
     obs, _ = env.reset()

@@ -1,5 +1,5 @@
 """Tests for dvfb.agents.fb: implicit reward, z inference, the FB / auxiliary-Q / orthonormality
-losses and the actor objectives (algorithm.md §7.8-§7.11, §8.2; §13 invariants 10-14, 19-22).
+losses and the actor objectives (docs/methods.md §7.8-§7.11, §8.2; §13 invariants 10-14, 19-22).
 
 The population-level checks (invariants 19, 20 and the "FB training recovers the successor measure"
 test) run on a tabular MDP in float64. They cannot drive :meth:`FBAgent.fb_losses` itself, whose F

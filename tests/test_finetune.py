@@ -1,5 +1,5 @@
 """Tests for dvfb.agents.finetune: reward mapping, the task critic Q_F, the dual-value actor and the
-freezing of F, B and z_r (algorithm.md §9; §13 invariants 15-17 and 27).
+freezing of F, B and z_r (docs/methods.md §9; §13 invariants 15-17 and 27).
 
 To feed the mapping a constant implicit reward (invariant 15) the tests use a batch whose rows are
 all the same transition: then every B_i is the same b, Cov = b b^T is singular, and with

@@ -1,5 +1,5 @@
 """Tests for dvfb.nets: shapes, ranges, the z geometry, the policy distribution, initialisation,
-EMA targets and running statistics (algorithm.md §3, §4, §5; §13 invariants 1-9, 18, 26)."""
+EMA targets and running statistics (docs/methods.md §3, §4, §5; §13 invariants 1-9, 18, 26)."""
 
 import math
 

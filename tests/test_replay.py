@@ -1,4 +1,4 @@
-"""Tests for dvfb.replay (spec section 6; section 13 invariant 30)."""
+"""Tests for dvfb.replay (docs/methods.md §6; section 13 invariant 30)."""
 
 import io
 import re

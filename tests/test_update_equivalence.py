@@ -6,7 +6,7 @@ layer by layer from its weights (LayerNorm and batch norm from their formulas), 
 separate matrix products, the CE reward builds the N x N x d cosine tensor and sorts it, the
 implicit reward uses an explicit matrix inverse, off-diagonal means use boolean masks, and the
 optimisers are single-tensor Adam. It draws its random numbers in the order the spec's update
-(algorithm.md §7.2, §5.3, §3.3) consumes them, from the same seed, so both sides use the same z's,
+(docs/methods.md §7.2, §5.3, §3.3) consumes them, from the same seed, so both sides use the same z's,
 permutation, mixing mask and policy noise.
 
 Also here: the no-host-sync check of the update path, "each forward pass once per update" (a

@@ -1,4 +1,4 @@
-"""Shared network building blocks (algorithm.md §3-§5).
+"""Shared network building blocks (docs/methods.md §3-§5).
 
 Every method in :mod:`dvfb.agents` builds its networks from the pieces here, so that an MLP, a twin
 head or an EMA target is written once:
@@ -27,7 +27,7 @@ from torch.nn import functional as F_nn
 
 # Actions are clamped strictly inside the box so that tanh-space quantities stay finite (§3.3).
 ACTION_EPS = 1e-6
-# Numerical floor of the norm in the sphere projection (algorithm.md conventions).
+# Numerical floor of the norm in the sphere projection (docs/methods.md conventions).
 NORM_FLOOR = 1e-12
 
 
@@ -288,7 +288,7 @@ class HostActor:
     """The mean ``mu(s, z)`` of a CPU :class:`Actor` for one observation, evaluated with numpy.
 
     Acting needs one actor forward per environment step at batch 1, where torch's per-module and
-    per-operator dispatch costs several times the arithmetic (algorithm.md §7.1 acts every step).
+    per-operator dispatch costs several times the arithmetic (docs/methods.md §7.1 acts every step).
     This evaluator runs the same layers as plain numpy calls on zero-copy views of the actor's
     parameters: optimiser steps and ``load_state_dict`` write those tensors in place, so the views
     always see the current weights, and the result equals ``Actor.forward`` up to float32 rounding

@@ -1,6 +1,6 @@
 """Execution options of the learner: precision, compilation and CUDA graphs.
 
-None of these changes the method (algorithm.md): ``precision = "bf16"`` changes only the number
+None of these changes the method (docs/methods.md): ``precision = "bf16"`` changes only the number
 format of the networks' matrix products, ``compile`` and ``cuda_graphs`` change only how the same
 operations are executed. They apply to the gradient updates of pre-training (:class:`FBAgent`,
 :class:`DVFBAgent`); acting, inference and fine-tuning always run eagerly in float32.

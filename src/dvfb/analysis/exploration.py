@@ -1,6 +1,6 @@
 """Exploration analysis (paper Fig. 2): where do the pre-trained skills go, and how much do they cover?
 
-``dvfb analyze-exploration RUN`` draws K skills ``z ~ p(z)`` (algorithm.md §5.1) from the
+``dvfb analyze-exploration RUN`` draws K skills ``z ~ p(z)`` (docs/methods.md §5.1) from the
 pre-trained agent, runs each R times for S steps in the domain's reward-free pre-training
 environment, and records physical positions at every step:
 
@@ -154,7 +154,7 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
 
 
 def _draw_maze(ax) -> None:
-    """The maze's arena (+-0.3) and its plus-shaped interior walls (tasks.md §6), to scale."""
+    """The maze's arena (+-0.3) and its plus-shaped interior walls (docs/tasks.md §6), to scale."""
     from matplotlib.patches import Rectangle
 
     ax.add_patch(Rectangle((-0.3, -0.3), 0.6, 0.6, fill=False, edgecolor="0.3", lw=1))

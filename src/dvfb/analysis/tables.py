@@ -1,10 +1,10 @@
 """Result tables shaped like the paper's Table 1 (zero-shot) and Table 2 (fine-tuning).
 
-Rows are the tasks of every domain that appears in the inputs (registry order, tasks.md §0), each
+Rows are the tasks of every domain that appears in the inputs (registry order, docs/tasks.md §0), each
 domain followed by an ``average`` row; columns are methods (named by
 :func:`dvfb.analysis.common.method_name`), plus ``random`` when random-policy files are given.
 
-Statistics (algorithm.md §8.3: "mean ± std over seeds"):
+Statistics (docs/methods.md §8.3: "mean ± std over seeds"):
 
 * a cell is the mean over seeds of the per-seed score, ± the **sample standard deviation over
   seeds (ddof = 1)**, or ± the standard error ``std(ddof=1) / sqrt(n)`` with ``spread="se"``.

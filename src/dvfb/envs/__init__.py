@@ -1,15 +1,15 @@
-"""DeepMind Control tasks of the DVFB paper behind a gymnasium API (tasks.md §0-§6).
+"""DeepMind Control tasks of the DVFB paper behind a gymnasium API (docs/tasks.md §0-§6).
 
 Public API::
 
     make(name, seed=None, reward_free=False) -> gymnasium.Env
     TASKS: dict[str, TaskSpec]      # every task, by full name "<domain>_<task>"
-    DOMAINS: dict[str, str]         # domain -> its reward-free pre-training task (tasks.md §5)
+    DOMAINS: dict[str, str]         # domain -> its reward-free pre-training task (docs/tasks.md §5)
     tasks_of_domain(domain), pretrain_task(domain), format_task_table()
 
 Importing this package also registers every task with gymnasium as ``dvfb/<name>``, so
 ``gymnasium.make("dvfb/walker_flip", seed=0)`` works. The registration adds no TimeLimit wrapper:
-the environment truncates at step 1000 itself (tasks.md §2).
+the environment truncates at step 1000 itself (docs/tasks.md §2).
 """
 
 from dvfb.envs._mujoco_gl import configure_default_mujoco_gl

@@ -1,4 +1,4 @@
-"""Cheetah domain (tasks.md §4.4, paper Appendix G): stock asset; run is stock, the rest custom.
+"""Cheetah domain (docs/tasks.md §4.4, paper Appendix G): stock asset; run is stock, the rest custom.
 
 Every task rewards r = clip(direction * v_x / speed); there is no stand term.
 """
@@ -14,7 +14,7 @@ from dm_control.utils import rewards
 
 from dvfb.envs._common import INF
 
-TIME_LIMIT_S = 10  # 1000 steps of 0.01 s, 1 substep (tasks.md §4.4)
+TIME_LIMIT_S = 10  # 1000 steps of 0.01 s, 1 substep (docs/tasks.md §4.4)
 RUN_SPEED = 10.0
 WALK_SPEED = 2.0
 
@@ -42,7 +42,7 @@ def _quiet_settotalmass_notice():
 
 
 class CheetahMove(stock_cheetah.Cheetah):
-    """Cheetah moving at ``speed`` in ``direction`` (+1 forward, -1 backward), tasks.md §4.4.
+    """Cheetah moving at ``speed`` in ``direction`` (+1 forward, -1 backward), docs/tasks.md §4.4.
 
     r = tol(direction * v_x; [speed, inf), m=speed, linear, v=0) = clip(direction * v_x / speed).
     """
@@ -63,7 +63,7 @@ class CheetahMove(stock_cheetah.Cheetah):
 
 
 def make_task(task: str, seed: int | None = None):
-    """The dm_control task object for ``task`` (stock ``Cheetah`` for run, tasks.md §3.1)."""
+    """The dm_control task object for ``task`` (stock ``Cheetah`` for run, docs/tasks.md §3.1)."""
     if task == "run":
         return stock_cheetah.Cheetah(random=seed)
     speed, direction = {
@@ -77,7 +77,7 @@ def make_task(task: str, seed: int | None = None):
 def build_environment(task: str, seed: int | None = None) -> control.Environment:
     """A dm_control environment for ``cheetah_<task>``: stock cheetah, control dt = physics dt.
 
-    The authors' enlarged ground is rendering-only (tasks.md §6) and is not applied.
+    The authors' enlarged ground is rendering-only (docs/tasks.md §6) and is not applied.
     """
     with _quiet_settotalmass_notice():
         physics = stock_cheetah.Physics.from_xml_string(*stock_cheetah.get_model_and_assets())

@@ -1,4 +1,4 @@
-"""``make``: build a task's gymnasium environment by name (tasks.md §3, §5)."""
+"""``make``: build a task's gymnasium environment by name (docs/tasks.md §3, §5)."""
 
 from __future__ import annotations
 
@@ -17,11 +17,11 @@ def make(
     Args:
         name: a full task name such as ``walker_flip`` (see ``dvfb.envs.TASKS``); with
             ``reward_free=True`` a bare domain name (``walker``) is also accepted and means the
-            domain's pre-training task (tasks.md §5).
-        seed: seeds the task RNG(s) (``task_kwargs.random = seed``, tasks.md §2); None draws fresh
+            domain's pre-training task (docs/tasks.md §5).
+        seed: seeds the task RNG(s) (``task_kwargs.random = seed``, docs/tasks.md §2); None draws fresh
             entropy. ``reset(seed=...)`` reseeds later.
         reward_free: return reward 0.0 from ``step``; the task reward is still computed and put in
-            ``info["task_reward"]`` (tasks.md §3).
+            ``info["task_reward"]`` (docs/tasks.md §3).
         render_mode: None or ``"rgb_array"``.
 
     Raises:

@@ -1,4 +1,4 @@
-"""Hopper domain (tasks.md §4.3): stock asset; hop is stock, the other three are custom rewards.
+"""Hopper domain (docs/tasks.md §4.3): stock asset; hop is stock, the other three are custom rewards.
 
 All four share the stock ``Hopper`` task's initial state and ``standing`` term; they differ only in
 the motion term: forward/backward centre-of-mass speed, or forward/backward angular momentum.
@@ -12,7 +12,7 @@ from dm_control.utils import rewards
 
 from dvfb.envs._common import INF, torso_subtree_angular_momentum_y
 
-TIME_LIMIT_S = 20  # 1000 steps of 0.02 s (tasks.md §4.3)
+TIME_LIMIT_S = 20  # 1000 steps of 0.02 s (docs/tasks.md §4.3)
 CONTROL_DT = 0.02
 STAND_HEIGHT_RANGE = (0.6, 2.0)  # torso-over-foot height range where `standing` is 1
 HOP_SPEED = 2.0
@@ -34,7 +34,7 @@ class _HopperCustomReward(stock_hopper.Hopper):
 
 
 class HopperHopBackward(_HopperCustomReward):
-    """hop_backward (tasks.md §4.3): r = standing * clip(-v_x / 2)."""
+    """hop_backward (docs/tasks.md §4.3): r = standing * clip(-v_x / 2)."""
 
     def motion_term(self, physics) -> float:
         return rewards.tolerance(
@@ -47,7 +47,7 @@ class HopperHopBackward(_HopperCustomReward):
 
 
 class HopperFlip(_HopperCustomReward):
-    """flip / flip_backward (tasks.md §4.3): r = standing * clip(direction * L_y / 5).
+    """flip / flip_backward (docs/tasks.md §4.3): r = standing * clip(direction * L_y / 5).
 
     ``direction`` is +1 for a forward flip (positive L_y) and -1 for a backward flip.
     """
@@ -67,7 +67,7 @@ class HopperFlip(_HopperCustomReward):
 
 
 def make_task(task: str, seed: int | None = None):
-    """The dm_control task object for ``task`` (stock ``Hopper`` for hop, tasks.md §3.1)."""
+    """The dm_control task object for ``task`` (stock ``Hopper`` for hop, docs/tasks.md §3.1)."""
     if task == "hop":
         return stock_hopper.Hopper(hopping=True, random=seed)
     if task == "hop_backward":
@@ -79,7 +79,7 @@ def make_task(task: str, seed: int | None = None):
 def build_environment(task: str, seed: int | None = None) -> control.Environment:
     """A dm_control environment for ``hopper_<task>``: stock hopper, 4 substeps, 20 s.
 
-    The authors' enlarged floor is rendering-only (tasks.md §6) and is not applied.
+    The authors' enlarged floor is rendering-only (docs/tasks.md §6) and is not applied.
     """
     physics = stock_hopper.Physics.from_xml_string(*stock_hopper.get_model_and_assets())
     return control.Environment(

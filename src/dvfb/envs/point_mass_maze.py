@@ -1,7 +1,7 @@
-"""Point-mass maze domain (tasks.md §4.5 and §6, paper Appendix I).
+"""Point-mass maze domain (docs/tasks.md §4.5 and §6, paper Appendix I).
 
 The model is the stock planar point mass with the authors' maze edits applied programmatically
-(tasks.md §6): contacts enabled, a plus-shaped interior wall made of two boxes, and the target
+(docs/tasks.md §6): contacts enabled, a plus-shaped interior wall made of two boxes, and the target
 sphere moved to the task's room and made non-colliding. The four tasks share the dynamics and the
 initial-state distribution and differ only in the target position.
 """
@@ -16,7 +16,7 @@ from lxml import etree
 
 from dvfb.envs._common import as_random_state
 
-TIME_LIMIT_S = 20  # 1000 steps of 0.02 s, 1 substep (tasks.md §4.5)
+TIME_LIMIT_S = 20  # 1000 steps of 0.02 s, 1 substep (docs/tasks.md §4.5)
 
 TARGETS: dict[str, tuple[float, float]] = {
     "reach_top_left": (-0.15, 0.15),
@@ -26,11 +26,11 @@ TARGETS: dict[str, tuple[float, float]] = {
 }
 TARGET_HEIGHT = 0.01
 
-# The start room (top left): x ~ U[-0.29, -0.15), y ~ U[0.15, 0.29) (tasks.md §4.5).
+# The start room (top left): x ~ U[-0.29, -0.15), y ~ U[0.15, 0.29) (docs/tasks.md §4.5).
 START_X_RANGE = (-0.29, -0.15)
 START_Y_RANGE = (0.15, 0.29)
 
-# Interior walls (tasks.md §6, item 4): name -> (half-sizes in the geom frame, local z axis).
+# Interior walls (docs/tasks.md §6, item 4): name -> (half-sizes in the geom frame, local z axis).
 # Both are centred at (0, 0, 0.02). maze_y spans x in [-0.18, 0.18], y in [-0.02, 0.02];
 # maze_x spans x in [-0.02, 0.02], y in [-0.18, 0.18]; both z in [0, 0.04].
 WALL_CENTRE = "0 0 0.02"
@@ -41,7 +41,7 @@ WALLS: dict[str, tuple[str, str]] = {
 
 
 def maze_model_xml(target_xy: tuple[float, float]) -> bytes:
-    """The stock point-mass MJCF with the maze edits of tasks.md §6 and the target at ``target_xy``.
+    """The stock point-mass MJCF with the maze edits of docs/tasks.md §6 and the target at ``target_xy``.
 
     Edits: (1) remove the ``contact="disable"`` flag; (3) add a default class ``wall`` (box geoms,
     stock material ``site``); (4) add the boxes ``maze_y`` and ``maze_x``, colliding with the
@@ -83,7 +83,7 @@ def maze_model_xml(target_xy: tuple[float, float]) -> bytes:
 
 
 class MazeReach(stock_point_mass.PointMass):
-    """Reach a target in the maze (tasks.md §4.5).
+    """Reach a target in the maze (docs/tasks.md §4.5).
 
     Reward: the stock point-mass reward, which is exactly the §4.5 formula:
     ``near * small_control`` with near = tol(dist; [0, 0.015], m=0.015, gaussian) and

@@ -1,4 +1,4 @@
-"""Quadruped domain (tasks.md §4.2): stock asset through the stock model builder.
+"""Quadruped domain (docs/tasks.md §4.2): stock asset through the stock model builder.
 
 walk and run are the stock dm_control tasks; stand and jump are custom rewards on the same
 ``Move`` task class, so initial states (random orientation, lowest non-contacting height) match.
@@ -13,26 +13,26 @@ from dm_control.utils import rewards
 
 from dvfb.envs._common import INF
 
-TIME_LIMIT_S = 20  # 1000 steps of 0.02 s (tasks.md §4.2)
+TIME_LIMIT_S = 20  # 1000 steps of 0.02 s (docs/tasks.md §4.2)
 CONTROL_DT = 0.02
 WALK_SPEED = 0.5
 RUN_SPEED = 5.0
 JUMP_HEIGHT = 1.0  # centre-of-mass height above which the jump term is 1
 
 # Floor half-size F given to the stock builder (time limit x speed, as the stock suite does).
-# Planes are infinite for collision, so F only changes rendering (tasks.md §4.2).
+# Planes are infinite for collision, so F only changes rendering (docs/tasks.md §4.2).
 FLOOR_SIZE = {"stand": 10, "walk": 10, "jump": 10, "run": 100}
 
 
 def upright_reward(physics) -> float:
-    """upright = tol(zz; [1, inf), m=2, linear, v=0) = (1 + zz) / 2 (tasks.md §4.2)."""
+    """upright = tol(zz; [1, inf), m=2, linear, v=0) = (1 + zz) / 2 (docs/tasks.md §4.2)."""
     return rewards.tolerance(
         physics.torso_upright(), bounds=(1.0, INF), sigmoid="linear", margin=2.0, value_at_margin=0
     )
 
 
 class QuadrupedStand(stock_quadruped.Move):
-    """Stand (tasks.md §4.2): r = upright."""
+    """Stand (docs/tasks.md §4.2): r = upright."""
 
     def __init__(self, random=None):
         super().__init__(desired_speed=0.0, random=random)
@@ -42,7 +42,7 @@ class QuadrupedStand(stock_quadruped.Move):
 
 
 class QuadrupedJump(stock_quadruped.Move):
-    """Jump (tasks.md §4.2): r = upright * clip(0.5 + c_z / 2), c_z = whole-body CoM height.
+    """Jump (docs/tasks.md §4.2): r = upright * clip(0.5 + c_z / 2), c_z = whole-body CoM height.
 
     c_z is the stock ``center_of_mass`` sensor (subtree CoM of the torso, world z).
     """
@@ -63,7 +63,7 @@ class QuadrupedJump(stock_quadruped.Move):
 
 
 def make_task(task: str, seed: int | None = None):
-    """The dm_control task object for ``task`` (stock ``Move`` for walk/run, tasks.md §3.1)."""
+    """The dm_control task object for ``task`` (stock ``Move`` for walk/run, docs/tasks.md §3.1)."""
     if task == "stand":
         return QuadrupedStand(random=seed)
     if task == "jump":

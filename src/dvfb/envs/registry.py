@@ -1,4 +1,4 @@
-"""The task registry: every DMC task of tasks.md §0 with its static facts, and name resolution.
+"""The task registry: every DMC task of docs/tasks.md §0 with its static facts, and name resolution.
 
 This module imports neither dm_control nor MuJoCo, so listing tasks (``dvfb tasks``) stays cheap.
 The domain modules that build the environments are imported lazily by :func:`domain_module`.
@@ -15,7 +15,7 @@ from dvfb.errors import ConfigError
 
 @dataclasses.dataclass(frozen=True)
 class TaskSpec:
-    """Static description of one task (tasks.md §0 summary table).
+    """Static description of one task (docs/tasks.md §0 summary table).
 
     Attributes:
         name: full task name, ``<domain>_<task>``, e.g. ``hopper_hop_backward``.
@@ -42,11 +42,11 @@ class _DomainFacts:
     obs_dim: int
     action_dim: int
     control_dt: float
-    pretrain_task: str  # the authors' pre-training ("primal") task, tasks.md §5
+    pretrain_task: str  # the authors' pre-training ("primal") task, docs/tasks.md §5
     module: str  # dvfb.envs.<module> builds the dm_control environment
 
 
-# tasks.md §0 (dims, control dt), §2 (1000 steps for every DMC domain) and §5 (pre-training task).
+# docs/tasks.md §0 (dims, control dt), §2 (1000 steps for every DMC domain) and §5 (pre-training task).
 _EPISODE_LENGTH = 1000
 _DOMAIN_FACTS: dict[str, _DomainFacts] = {
     "walker": _DomainFacts(("stand", "walk", "run", "flip"), 24, 6, 0.025, "walk", "walker"),
@@ -80,12 +80,12 @@ TASKS: dict[str, TaskSpec] = {
     for domain, facts in _DOMAIN_FACTS.items()
     for task in facts.tasks
 }
-"""Every task, by full name, in domain order (tasks.md §0)."""
+"""Every task, by full name, in domain order (docs/tasks.md §0)."""
 
 DOMAINS: dict[str, str] = {
     domain: f"{domain}_{facts.pretrain_task}" for domain, facts in _DOMAIN_FACTS.items()
 }
-"""Domain -> the full name of its reward-free pre-training task (tasks.md §5, authors' column)."""
+"""Domain -> the full name of its reward-free pre-training task (docs/tasks.md §5, authors' column)."""
 
 
 def tasks_of_domain(domain: str) -> list[str]:
@@ -96,7 +96,7 @@ def tasks_of_domain(domain: str) -> list[str]:
 
 
 def pretrain_task(domain: str) -> str:
-    """The pre-training task of ``domain`` (tasks.md §5). Raises ConfigError if unknown."""
+    """The pre-training task of ``domain`` (docs/tasks.md §5). Raises ConfigError if unknown."""
     if domain not in DOMAINS:
         raise ConfigError(f"unknown domain {domain!r}; valid domains: {', '.join(DOMAINS)}")
     return DOMAINS[domain]
@@ -106,7 +106,7 @@ def resolve_task(name: str, reward_free: bool = False) -> TaskSpec:
     """Map a user-given name to its TaskSpec.
 
     A full task name always resolves to itself. A bare domain name resolves to the domain's
-    pre-training task (tasks.md §5), but only in reward-free mode: a downstream (reward-using) run
+    pre-training task (docs/tasks.md §5), but only in reward-free mode: a downstream (reward-using) run
     must say which task it means. Anything else raises :class:`ConfigError` listing valid names.
     """
     if name in TASKS:
@@ -133,7 +133,7 @@ def domain_module(domain: str) -> ModuleType:
 def format_task_table() -> str:
     """A markdown table of every task: name, domain, obs dim, action dim, episode length.
 
-    Pre-training tasks (tasks.md §5) are marked with ``*``.
+    Pre-training tasks (docs/tasks.md §5) are marked with ``*``.
     """
     header = ("task", "domain", "obs dim", "action dim", "episode length")
     pretrain_names = set(DOMAINS.values())

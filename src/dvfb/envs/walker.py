@@ -1,4 +1,4 @@
-"""Walker domain (tasks.md §4.1): stock asset and stock task class, plus a custom flip task.
+"""Walker domain (docs/tasks.md §4.1): stock asset and stock task class, plus a custom flip task.
 
 stand, walk and run are the stock dm_control tasks. flip reuses the stock walker and its stand term
 but rewards forward angular momentum instead of forward speed.
@@ -12,7 +12,7 @@ from dm_control.utils import rewards
 
 from dvfb.envs._common import INF, torso_subtree_angular_momentum_y
 
-TIME_LIMIT_S = 25  # 1000 steps of 0.025 s (tasks.md §4.1)
+TIME_LIMIT_S = 25  # 1000 steps of 0.025 s (docs/tasks.md §4.1)
 CONTROL_DT = 0.025
 STAND_HEIGHT = 1.2  # torso height above which `standing` is 1
 WALK_SPEED = 1.0
@@ -21,7 +21,7 @@ FLIP_MOMENTUM = 5.0  # L_y above which the flip term is 1
 
 
 class WalkerFlip(stock_walker.PlanarWalker):
-    """Forward flip (tasks.md §4.1): r = stand_r * (5 * clip(L_y / 5) + 1) / 6.
+    """Forward flip (docs/tasks.md §4.1): r = stand_r * (5 * clip(L_y / 5) + 1) / 6.
 
     The authors construct it with the run speed, which the flip reward then ignores.
     """
@@ -46,7 +46,7 @@ class WalkerFlip(stock_walker.PlanarWalker):
 
 
 def make_task(task: str, seed: int | None = None):
-    """The dm_control task object for ``task`` (stock for stand/walk/run, tasks.md §3.1)."""
+    """The dm_control task object for ``task`` (stock for stand/walk/run, docs/tasks.md §3.1)."""
     if task == "flip":
         return WalkerFlip(random=seed)
     move_speed = {"stand": 0.0, "walk": WALK_SPEED, "run": RUN_SPEED}[task]
