@@ -17,7 +17,8 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-demo: $(STAMP)
+# The GIF of the demo renders with OpenGL: gl-deps installs software OpenGL when it is missing.
+demo: $(STAMP) gl-deps
 	$(VENV)/bin/dvfb demo
 
 test: $(STAMP) gl-deps
@@ -40,4 +41,4 @@ bench: $(STAMP)
 	$(PY) bench/run.py
 
 clean:
-	rm -rf $(VENV) runs
+	rm -rf $(VENV) runs demo

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -21,7 +22,7 @@ TINY = ["--fb.z-dim", "16", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "
 # DVFB's own section (an FB run has no --exploration.* flags).
 TINY_EXPLORATION = ["--exploration.contrastive-hidden-dim", "32", "--exploration.rnd-rep-dim", "16",
                     "--exploration.ce-k", "4"]
-MAZE = ["--domain", "point_mass_maze", "--seed-frames", "1000", "--update-every", "4", "--checkpoint-every", "1000"]
+MAZE = ["--domain", "point_mass_maze", "--seed-frames", "500", "--update-every", "4", "--checkpoint-every", "1000"]
 FAST_INFERENCE = ["--inference.steps", "300", "--inference.random-action-steps", "100",
                   "--inference.samples", "300", "--inference.eval-episodes", "1"]
 
@@ -46,8 +47,8 @@ def test_pretrain_writes_run_directory(pretrained: Path):
     assert (pretrained / "snapshots" / "snapshot_2000.pt").is_file()
     assert latest_checkpoint(pretrained).name == "resume_2000.pt"
     lines = (pretrained / "metrics" / "train.jsonl").read_text().splitlines()
-    # Updates start at 1000 frames; metrics are read back every 250 frames.
-    assert [json.loads(line)["step"] for line in lines] == list(range(1250, 2001, 250))
+    # Updates start at 500 frames; metrics are read back every 250 frames.
+    assert [json.loads(line)["step"] for line in lines] == list(range(750, 2001, 250))
     assert {"fb_loss", "rnd_loss", "nce_loss", "exploration_critic_loss", "actor_loss"} <= set(json.loads(lines[-1]))
     assert any(p.name.startswith("events.out.tfevents") for p in (pretrained / "tb").iterdir())
     summary = json.loads((pretrained / "pretrain_summary.json").read_text())
@@ -109,13 +110,22 @@ def test_resume_continues_as_if_uninterrupted(tmp_path: Path):
     assert strip(full_metrics) == strip(split_metrics)
 
 
-def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path: Path, capsys):
+def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path: Path):
+    """A NaN ridge (which the CLI refuses; set here behind its back) poisons the implicit reward of
+    the first update after the first checkpoint: the error names the step, the ridge option and
+    the checkpoint that is really there."""
+    from dvfb.errors import NonFiniteLossError
+    from dvfb.workflows.pretrain import pretrain
+    from tiny import tiny_run_config
+
     run_dir = tmp_path / "nan"
-    # A NaN ridge poisons the implicit reward of the first update, after the first checkpoint.
-    code = main(pretrain_args(run_dir, 3000, agent="fb", extra=["--seed-frames", "1000", "--fb.cov-ridge", "nan"]))
-    assert code == 2
-    err = capsys.readouterr().err
-    assert "non-finite" in err and "fb_q_loss" in err and "step 1000" in err
+    config = tiny_run_config("fb", frames=3000, seed_frames=1000)
+    object.__setattr__(config.fb, "cov_ridge", float("nan"))
+    with pytest.raises(NonFiniteLossError) as exc:
+        pretrain(config, run_dir, progress=False)
+    message = str(exc.value)
+    assert "non-finite" in message and "fb_q_loss" in message and "step 1000" in message
+    assert "--fb.cov-ridge" in message and "resume checkpoint of step 1000 is intact" in message
     assert latest_checkpoint(run_dir).name == "resume_1000.pt"
     assert load_checkpoint(run_dir)["step"] == 1000
     assert not (run_dir / "snapshots" / "snapshot_3000.pt").exists()
@@ -189,7 +199,7 @@ def test_unknown_preset_and_option_values(tmp_path: Path, capsys):
     assert exc.value.code == 2
     assert "huge" in capsys.readouterr().err
     assert main(pretrain_args(tmp_path / "y", 1000, extra=["--fb.backward-input", "future"])) == 2
-    assert "backward_input" in capsys.readouterr().err
+    assert "--fb.backward-input 'future'" in capsys.readouterr().err
     assert main(pretrain_args(tmp_path / "z", 1000, extra=["--domain", "jaco"])) == 2
     assert "walker" in capsys.readouterr().err
     assert not (tmp_path / "y").exists() and not (tmp_path / "z").exists()
@@ -237,3 +247,22 @@ def test_finetune_resume_continues_as_if_uninterrupted(pretrained: Path):
         assert a[part].keys() == b[part].keys()
         for key in a[part]:
             assert torch.equal(a[part][key], b[part][key]), (part, key)
+
+
+def test_demo_runs_the_bundled_agent_a_gif_and_a_live_pretraining(tmp_path: Path):
+    """`dvfb demo` (the README's first command) with tiny budgets, rendering with software OpenGL."""
+    out = tmp_path / "demo"
+    done = subprocess.run([sys.executable, "-m", "dvfb", "demo", "--out-dir", str(out), "--frames", "1200",
+                           "--inference-steps", "200", "--eval-episodes", "1", "--gif-steps", "20", "--no-progress"],
+                          capture_output=True, text=True,
+                          env={**os.environ, "MUJOCO_GL": "osmesa", "PYOPENGL_PLATFORM": "osmesa"})
+    assert done.returncode == 0, done.stderr
+    rows = [line.split() for line in done.stdout.splitlines() if line.startswith("walker_")]
+    assert [r[0] for r in rows] == ["walker_stand", "walker_walk", "walker_run", "walker_flip"]
+    assert all(len(r) == 3 and float(r[1]) >= 0 and float(r[2]) >= 0 for r in rows)
+    bundled = out / "pretrained_dvfb_walker"
+    provenance = json.loads((bundled / "provenance.json").read_text())
+    assert provenance["frames"] == 20000 and "dvfb pretrain" in provenance["command"]
+    assert len(list((bundled / "zeroshot").glob("walker_*.json"))) == 4
+    assert (out / "walker_walk.gif").stat().st_size > 0
+    assert json.loads((out / "live_pretrain" / "pretrain_summary.json").read_text())["frames"] == 1200

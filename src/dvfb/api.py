@@ -57,7 +57,7 @@ class PretrainedAgent:
             raise ConfigError("infer_z needs exactly one of (obs, next_obs, rewards), reward_fn= or goal=")
         if self.spec.zero_shot != "reward_inference":
             raise ConfigError(f"{self.name!r} has a single policy and no skill to infer; call policy() without z")
-        cfg = merge(self.config.inference, inference)
+        cfg = merge(self.config.inference, inference, "inference.")
         device = self.agent.device
         if goal is not None:
             return self.agent.skill_from_goal(torch.as_tensor(np.asarray(goal), dtype=torch.float32))

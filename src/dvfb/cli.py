@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import logging
 import sys
 from pathlib import Path
@@ -19,7 +20,7 @@ import numpy as np
 
 from dvfb import __version__
 from dvfb.config import add_arguments, merge, overrides_from_args
-from dvfb.errors import ConfigError, DvfbError
+from dvfb.errors import ConfigError, DvfbError, RunInterrupted
 
 DEFAULT_PRESET = "small"
 
@@ -136,7 +137,7 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
     for task in tasks:
         result = zeroshot(args.run, task, snapshot=args.snapshot, inference=inference, seed=args.seed,
                           z_source=args.z_source, reward_fn=args.reward_fn, goal=goal,
-                          overwrite=args.overwrite)
+                          overwrite=args.overwrite, progress=args.progress)
         rows.append((task, result["mean_return"], result["std_return"], result["eval_episodes"]))
     print(f"{'task':<36} {'return':>9} {'std':>8} {'episodes':>9}")
     for task, mean, std, n in rows:
@@ -151,7 +152,6 @@ def cmd_finetune(args: argparse.Namespace) -> int:
                    inference=_protocol_overrides(args, "inference"),
                    finetune=_protocol_overrides(args, "finetune"),
                    resume=args.resume, overwrite=args.overwrite, progress=args.progress)
-    import json
 
     summary = json.loads((run.path / "finetune_summary.json").read_text())
     print(f"fine-tuning finished: {run.path}")
@@ -161,31 +161,62 @@ def cmd_finetune(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    """Short pre-training -> zero-shot on every task of the domain -> printed table."""
+    """The bundled pre-trained DVFB walker zero-shot on its 4 tasks against a random policy, a GIF of
+    one task, then a short live pre-training that shows the pipeline (docs: README, "Two commands")."""
+    import shutil
+
     from dvfb import envs
+    from dvfb.analysis.video import record_video
+    from dvfb.errors import DvfbError
     from dvfb.workflows.config import preset_config
     from dvfb.workflows.pretrain import pretrain
     from dvfb.workflows.zeroshot import random_policy_return, zeroshot
 
-    config = preset_config("small", agent=args.agent, domain=args.domain, frames=args.frames, seed=args.seed,
-                           seed_frames=min(2000, args.frames // 2), checkpoint_every=args.frames, log_every=500)
-    run_dir = Path(args.run_dir)
-    print(f"[demo] pre-training {config.agent} on {config.domain} for {config.frames} frames "
-          f"(small preset) into {run_dir}")
-    pretrain(config, run_dir, overwrite=True, progress=args.progress, command=sys.argv)
+    out = Path(args.out_dir)
+    bundled = bundled_demo_run()
+    agent_dir = out / "pretrained_dvfb_walker"
+    provenance = json.loads((bundled / "provenance.json").read_text())
+    if agent_dir.exists():
+        shutil.rmtree(agent_dir)
+    shutil.copytree(bundled, agent_dir)
+    print(f"[demo] bundled agent: DVFB pre-trained on walker for {provenance['frames']} frames "
+          f"({provenance['preset']} preset; how it was made: {agent_dir / 'provenance.json'})")
     inference = {"steps": args.inference_steps, "random_action_steps": args.inference_steps // 2,
                  "samples": args.inference_steps, "eval_episodes": args.eval_episodes}
     print(f"[demo] zero-shot: {args.inference_steps} reward-labelled steps per task, "
-          f"{args.eval_episodes} evaluation episode(s)")
-    header = f"{'task':<36} {config.agent + ' zero-shot':>16} {'random policy':>14}"
+          f"{args.eval_episodes} evaluation episode(s); random policy: {args.eval_episodes} episode(s)")
+    header = f"{'task':<24} {'DVFB zero-shot':>15} {'random policy':>14}"
     lines = [header, "-" * len(header)]
-    for task in envs.tasks_of_domain(config.domain):
-        result = zeroshot(run_dir, task, inference=inference, overwrite=True)
-        random_return = float(np.mean(random_policy_return(task, args.eval_episodes, seed=args.seed)))
-        lines.append(f"{task:<36} {result['mean_return']:16.1f} {random_return:14.1f}")
+    for task in envs.tasks_of_domain("walker"):
+        result = zeroshot(agent_dir, task, inference=inference, overwrite=True, progress=args.progress)
+        random_return = float(np.mean(random_policy_return(task, args.eval_episodes, seed=0)))
+        lines.append(f"{task:<24} {result['mean_return']:15.1f} {random_return:14.1f}")
     print("\n".join(lines))
-    print(f"[demo] results: {run_dir}/zeroshot/*.json")
+    gif = out / f"{args.gif_task}.gif"
+    try:
+        video = record_video(agent_dir, args.gif_task, out=gif, max_steps=args.gif_steps, frame_skip=4,
+                             height=160, width=200, overwrite=True)
+        print(f"[demo] {video['path']}: zero-shot {args.gif_task}, {video['frames']} frames")
+    except (DvfbError, RuntimeError) as exc:  # rendering needs OpenGL; the rest of the demo does not
+        print(f"[demo] no GIF: {exc}")
+    config = preset_config("small", agent="dvfb", domain="walker", frames=args.frames, seed=0,
+                           seed_frames=min(1000, args.frames // 2), checkpoint_every=args.frames, log_every=500,
+                           replay_capacity=max(args.frames, 1000))  # the whole live run, not 1M transitions
+    live = out / "live_pretrain"
+    print(f"[demo] live pre-training: dvfb on walker for {config.frames} frames (small preset) into {live}")
+    pretrain(config, live, overwrite=True, progress=args.progress, command=sys.argv)
+    print(f"[demo] done: {out}/ (zero-shot results in {agent_dir}/zeroshot/, the live run in {live}/)")
     return 0
+
+
+def bundled_demo_run() -> Path:
+    """The pre-trained DVFB walker run shipped in the package (config, snapshot, provenance)."""
+    from importlib import resources
+
+    path = Path(str(resources.files("dvfb") / "data" / "demo_walker_dvfb"))
+    if not (path / "config.json").is_file():
+        raise ConfigError(f"the bundled demo agent is missing from the installation ({path})")
+    return path
 
 
 def cmd_random_policy(args: argparse.Namespace) -> int:
@@ -334,7 +365,7 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
 
     p = sub.add_parser("zeroshot", help="infer z for a task and evaluate", formatter_class=_Formatter,
                        description="Zero-shot: infer z_r from reward-labelled steps (or a reward function "
-                                   "or a goal) and evaluate pi(s, z_r) with mean actions (algorithm.md §8). "
+                                   "or a goal) and evaluate pi(s, z_r) with mean actions (docs/methods.md §8). "
                                    "Inference defaults come from the run's config.")
     p.add_argument("run", help="pre-training run directory")
     p.add_argument("--task", nargs="+", required=True, help="task name(s) of the run's domain, or 'all'")
@@ -344,6 +375,7 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
     p.add_argument("--reward-fn", default=None, help="module:function or file.py:function mapping next_obs (N, O) to rewards")
     p.add_argument("--goal", default=None, help="goal observation: a .npy file or comma-separated numbers")
     p.add_argument("--overwrite", action="store_true", help="replace an existing result file")
+    progress_flag(p)
     _add_protocol_arguments(p, "inference")
     p.set_defaults(func=cmd_zeroshot)
 
@@ -372,15 +404,18 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.set_defaults(func=cmd_random_policy)
 
-    p = sub.add_parser("demo", help="short pre-train -> zero-shot on every task -> table",
-                       description="The README's end-to-end demo on the small CPU preset.")
-    p.add_argument("--agent", default="dvfb", choices=agent_names(), help="(default: %(default)s)")
-    p.add_argument("--domain", default="walker", help="(default: %(default)s)")
-    p.add_argument("--frames", type=int, default=6000, help="pre-training frames (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="(default: %(default)s)")
-    p.add_argument("--inference-steps", type=int, default=2000, help="reward-labelled steps per task (default: %(default)s)")
-    p.add_argument("--eval-episodes", type=int, default=1, help="evaluation episodes per task (default: %(default)s)")
-    p.add_argument("--run-dir", default="runs/demo", help="(default: %(default)s; replaced on every demo)")
+    p = sub.add_parser("demo", help="the bundled DVFB walker zero-shot vs random, a GIF, a short live run",
+                       description="The README's demo: a bundled pre-trained DVFB walker agent (made with "
+                                   "`dvfb pretrain`, see its provenance.json) zero-shot on the 4 walker tasks "
+                                   "against a uniform-random policy, a GIF of one task, then a short live "
+                                   "pre-training on the small CPU preset.")
+    p.add_argument("--out-dir", default="demo", help="(default: %(default)s; replaced on every demo)")
+    p.add_argument("--frames", type=int, default=3000, help="live pre-training frames (default: %(default)s)")
+    p.add_argument("--inference-steps", type=int, default=4000,
+                   help="reward-labelled steps per task (default: %(default)s)")
+    p.add_argument("--eval-episodes", type=int, default=2, help="evaluation episodes per task (default: %(default)s)")
+    p.add_argument("--gif-task", default="walker_walk", help="task of the GIF (default: %(default)s)")
+    p.add_argument("--gif-steps", type=int, default=400, help="steps in the GIF (default: %(default)s)")
     progress_flag(p)
     p.set_defaults(func=cmd_demo)
 
@@ -457,6 +492,10 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing video file")
     _add_protocol_arguments(p, "inference")
     p.set_defaults(func=cmd_video)
+    # Global flags are accepted after the sub-command too (`dvfb pretrain ... -v`).
+    for subparser in sub.choices.values():
+        subparser.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                               help="log progress messages")
     return parser
 
 
@@ -486,6 +525,9 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         return args.func(args)
+    except RunInterrupted as exc:
+        print(f"dvfb {args.command}: {exc}", file=sys.stderr)
+        return 128 + exc.signum
     except DvfbError as exc:
         print(f"dvfb {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import types
 import typing
 from pathlib import Path
@@ -21,28 +22,77 @@ from dvfb.errors import ConfigError
 T = TypeVar("T")
 
 
-def param(default: Any, help: str, choices: tuple | None = None) -> Any:
-    """Declare a config field with a default, a help text and optional allowed values."""
-    metadata = {"help": help}
+def param(default: Any, help: str, choices: tuple | None = None, *, at_least: float | None = None,
+          above: float | None = None, at_most: float | None = None) -> Any:
+    """Declare a config field with a default, a help text, and optionally its allowed values:
+    ``choices``, or a range (``at_least`` / ``above`` a lower bound, ``at_most`` an upper one).
+
+    Float fields must also be finite (no NaN or inf) unless their default is not: validation checks
+    all of it when a config is built from a dict, replaced or merged (:func:`validate`).
+    """
+    metadata: dict[str, Any] = {"help": help}
     if choices is not None:
         metadata["choices"] = tuple(choices)
+    bounds = {k: v for k, v in (("at_least", at_least), ("above", above), ("at_most", at_most)) if v is not None}
+    if bounds:
+        metadata["bounds"] = bounds
     if isinstance(default, (list, dict, set)):
         return dataclasses.field(default_factory=lambda: type(default)(default), metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
 
 
-def validate(config: Any) -> None:
-    """Check every field with declared choices, recursing into nested configs."""
+def flag_name(path: str) -> str:
+    """The command-line flag of a config field path: ``fb.batch_size`` -> ``--fb.batch-size``."""
+    return "--" + path.replace("_", "-")
+
+
+def _range_text(bounds: dict) -> str:
+    parts = []
+    if "at_least" in bounds:
+        parts.append(f">= {bounds['at_least']:g}")
+    if "above" in bounds:
+        parts.append(f"> {bounds['above']:g}")
+    if "at_most" in bounds:
+        parts.append(f"<= {bounds['at_most']:g}")
+    return " and ".join(parts)
+
+
+def _check_value(path: str, value: Any, metadata: Any) -> None:
+    choices = metadata.get("choices")
+    if choices is not None and value not in choices:
+        raise ConfigError(f"{flag_name(path)} {value!r} is not one of {', '.join(map(str, choices))}")
+    values = value if isinstance(value, (list, tuple)) else [value]
+    for item in values:
+        if isinstance(item, bool) or not isinstance(item, (int, float)):
+            continue
+        if isinstance(item, float) and not math.isfinite(item):
+            raise ConfigError(f"{flag_name(path)} {item!r} is not a finite number")
+        bounds = metadata.get("bounds")
+        if bounds and (("at_least" in bounds and item < bounds["at_least"])
+                       or ("above" in bounds and item <= bounds["above"])
+                       or ("at_most" in bounds and item > bounds["at_most"])):
+            raise ConfigError(f"{flag_name(path)} {item!r} is out of range: it must be {_range_text(bounds)}")
+
+
+def require_updates(frames_flag: str, frames: int, seed_flag: str, seed_frames: int) -> None:
+    """A training loop's relation: more frames than seed frames, or no update would run."""
+    if frames <= seed_frames:
+        raise ConfigError(f"{frames_flag} {frames} must be larger than {seed_flag} {seed_frames}: no update would run")
+
+
+def validate(config: Any, path: str = "") -> None:
+    """Check every field's choices, range and finiteness, recursing into nested configs, then the
+    relations a config class declares in a ``check()`` method. Errors name the flag and the value."""
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
+        field_path = f"{path}{f.name}"
         if dataclasses.is_dataclass(value):
-            validate(value)
+            validate(value, f"{field_path}.")
             continue
-        choices = f.metadata.get("choices")
-        if choices is not None and value not in choices:
-            raise ConfigError(
-                f"{type(config).__name__}.{f.name}={value!r} is not one of {list(choices)}"
-            )
+        _check_value(field_path, value, f.metadata)
+    check = getattr(config, "check", None)
+    if callable(check):
+        check()
 
 
 def to_dict(config: Any) -> dict:
@@ -64,7 +114,7 @@ def _coerce(name: str, tp: Any, value: Any) -> Any:
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ConfigError(f"{name}: expected a mapping, got {value!r}")
-        return from_dict(tp, value)
+        return from_dict(tp, value, check=False)  # validated as a whole by the outermost call
     if origin in (list, tuple):
         (inner, *_rest) = typing.get_args(tp) or (Any,)
         seq = [_coerce(name, inner, v) for v in value]
@@ -78,8 +128,10 @@ def _coerce(name: str, tp: Any, value: Any) -> Any:
     return value
 
 
-def from_dict(cls: type[T], data: dict) -> T:
-    """Build ``cls`` from a dict, rejecting unknown keys and wrongly typed values."""
+def from_dict(cls: type[T], data: dict, check: bool = True, prefix: str = "") -> T:
+    """Build ``cls`` from a dict, rejecting unknown keys and wrongly typed values; with ``check``
+    (the outermost call), also :func:`validate` the result, naming nested fields by their path
+    (``prefix`` is the path of ``cls`` itself, e.g. ``"inference."``)."""
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
@@ -87,7 +139,8 @@ def from_dict(cls: type[T], data: dict) -> T:
     types_ = _field_types(cls)
     kwargs = {k: _coerce(f"{cls.__name__}.{k}", types_[k], v) for k, v in data.items()}
     config = cls(**kwargs)
-    validate(config)
+    if check:
+        validate(config, prefix)
     return config
 
 
@@ -190,8 +243,9 @@ def overrides_from_args(args: argparse.Namespace, cls: type, prefix: str = "") -
     return out
 
 
-def merge(config: T, overrides: dict) -> T:
-    """Apply a nested override dict to a config, validating the result."""
+def merge(config: T, overrides: dict, prefix: str = "") -> T:
+    """Apply a nested override dict to a config, validating the result (errors name the fields
+    with ``prefix``, the path of ``config`` in its run config)."""
     data = to_dict(config)
 
     def deep_update(base: dict, upd: dict) -> None:
@@ -202,4 +256,4 @@ def merge(config: T, overrides: dict) -> T:
                 base[k] = v
 
     deep_update(data, overrides)
-    return from_dict(type(config), data)
+    return from_dict(type(config), data, prefix=prefix)

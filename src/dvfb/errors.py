@@ -24,3 +24,12 @@ class CheckpointError(DvfbError):
 
 class NonFiniteLossError(DvfbError, FloatingPointError):
     """A loss became NaN or inf; training stops and keeps the last good checkpoint."""
+
+
+class RunInterrupted(DvfbError):
+    """SIGTERM or SIGINT stopped a run after its current step; a checkpoint to resume from was
+    written. The CLI exits with status 128 + the signal number, as a shell reports a signal."""
+
+    def __init__(self, message: str, signum: int):
+        super().__init__(message)
+        self.signum = signum

@@ -1,4 +1,4 @@
-"""In-memory episodic replay buffer (spec section 6; invariant 30 of section 13).
+"""In-memory episodic replay buffer (docs/methods.md §6; invariant 30 of section 13).
 
 What is stored
     Every environment step of every stored episode: the observation, the action taken in it, the
@@ -73,7 +73,8 @@ class Batch:
 
     ``reward`` and ``discount`` have shape (B, 1); ``discount`` is ``gamma * env_discount`` for
     one-step batches, and ``gamma^n`` times the n environment discounts for n-step batches, whose
-    ``next_obs`` is ``s_{t+n}`` and ``reward`` the discounted n-step sum (spec section 6). ``future_obs`` is ``obs_{t+2}`` when it was requested, else None.
+    ``next_obs`` is ``s_{t+n}`` and ``reward`` the discounted n-step sum (docs/methods.md §6).
+    ``future_obs`` is ``obs_{t+2}`` when it was requested, else None.
     ``z`` is the stored rollout task vector, (B, z_dim), or None when the buffer has ``z_dim = 0``.
     """
 
@@ -106,7 +107,7 @@ def _num_slots(capacity: int, max_episode_length: int) -> int:
 class ReplayBuffer:
     """Preallocated FIFO replay buffer of whole episodes, sampled uniformly per transition.
 
-    See the module docstring for the layout, eviction and sampling rules (spec section 6).
+    See the module docstring for the layout, eviction and sampling rules (docs/methods.md §6).
 
     Args:
         capacity: maximum number of stored transitions; at least ``max_episode_length``.
@@ -296,7 +297,7 @@ class ReplayBuffer:
 
     def sample(self, batch_size: int, gamma: float = 0.99, need_future: bool = False,
                generator: torch.Generator | None = None, nstep: int = 1) -> Batch:
-        """Draw ``batch_size`` transitions uniformly with replacement (spec section 6).
+        """Draw ``batch_size`` transitions uniformly with replacement (docs/methods.md §6).
 
         With ``need_future`` only transitions whose ``obs_{t+2}`` exists in the same episode are
         eligible and the batch has ``future_obs``. With ``nstep = n > 1`` only transitions whose
@@ -335,7 +336,7 @@ class ReplayBuffer:
     def transitions(self, gamma: float = 0.99) -> Batch:
         """Every stored transition once, oldest episode first and in time order within an episode.
 
-        Used for zero-shot task inference on reward-labelled data (spec section 8.1).
+        Used for zero-shot task inference on reward-labelled data (docs/methods.md §8.1).
         ``future_obs`` is None.
         """
         slots = self._ring_slots()

@@ -36,6 +36,7 @@ import platform
 import re
 import shutil
 import uuid
+import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
@@ -52,6 +53,7 @@ T = TypeVar("T")
 
 CONFIG_FILE = "config.json"
 META_FILE = "meta.json"
+LOCK_FILE = ".lock"
 LATEST_POINTER = "latest"
 CHECKPOINT_SUFFIX = ".pt"
 _TEMP_MARK = ".tmp-"
@@ -198,7 +200,7 @@ class RunDir:
         if path.exists() or path.is_symlink():
             if not path.is_dir():
                 raise RunDirError(f"{path} exists and is not a directory; choose another run name")
-            if any(path.iterdir()):
+            if any(child.name != LOCK_FILE for child in path.iterdir()):
                 if not overwrite:
                     raise RunDirError(
                         f"run directory {path} already exists and is not empty; pass --overwrite "
@@ -211,7 +213,14 @@ class RunDir:
                         "run name"
                     )
                 try:
-                    shutil.rmtree(path)
+                    # Everything but the lock file, which the overwriting process holds.
+                    for child in path.iterdir():
+                        if child.name == LOCK_FILE:
+                            continue
+                        if child.is_dir() and not child.is_symlink():
+                            shutil.rmtree(child)
+                        else:
+                            child.unlink()
                 except OSError as exc:
                     raise RunDirError(f"cannot remove {path} to overwrite it: {exc}") from exc
         try:
@@ -264,6 +273,94 @@ class RunDir:
     def read_meta(self) -> dict:
         """The contents of meta.json."""
         return read_json(self.meta_path, RunDirError)
+
+
+class RunLock:
+    """One writer per run directory: an exclusive OS lock (``flock``) on ``<run>/.lock``.
+
+    The lock file holds the holder's process id, which the refusal names. The OS releases the
+    lock when its process dies, so a stale lock file of a dead process is simply taken over.
+    Entering creates the run directory if needed (after the caller has validated its inputs).
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self._file: IO[str] | None = None
+        self.created_directory = False
+
+    def __enter__(self) -> RunLock:
+        import fcntl
+
+        try:
+            if not self.path.exists():
+                self.path.mkdir(parents=True)
+                self.created_directory = True
+            file = open(self.path / LOCK_FILE, "a+", encoding="utf-8")
+        except OSError as exc:
+            raise RunDirError(f"cannot use run directory {self.path}: {exc.strerror or exc}") from exc
+        try:
+            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            file.seek(0)
+            holder = file.read().strip() or "unknown"
+            file.close()
+            raise RunDirError(f"run directory {self.path} is in use by process {holder}; wait for it to "
+                              "finish or stop it (kill -TERM checkpoints a pre-training run)") from None
+        file.seek(0)
+        file.truncate()
+        file.write(f"{os.getpid()}\n")
+        file.flush()
+        self._file = file
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        if self._file is not None:
+            self._file.close()  # closing releases the flock
+            self._file = None
+
+    def remove_if_created(self) -> None:
+        """Undo the directory this lock created (a run that failed before writing anything)."""
+        if self.created_directory and {p.name for p in self.path.iterdir()} <= {LOCK_FILE}:
+            shutil.rmtree(self.path, ignore_errors=True)
+
+
+def check_writable(directory: str | os.PathLike) -> None:
+    """Fail early, with one line, if files cannot be written in ``directory`` (created if needed):
+    a read-only file system, a permission problem or a full disk."""
+    directory = Path(directory)
+    probe = directory / f".write-probe{_TEMP_MARK}{uuid.uuid4().hex[:8]}"
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        with open(probe, "wb") as file:
+            file.write(b"x")
+            file.flush()
+            os.fsync(file.fileno())
+    except OSError as exc:
+        raise RunDirError(f"cannot write in {directory}: {exc.strerror or exc}") from exc
+    finally:
+        try:
+            probe.unlink(missing_ok=True)
+        except OSError:
+            pass  # it was never created (read-only, full)
+
+
+def remove_orphaned_checkpoints(run: RunDir | str | os.PathLike) -> list[Path]:
+    """Delete resume checkpoints that ``latest`` does not name, and stale temporary files: what a
+    process killed between moving the pointer and deleting the old checkpoint leaves behind."""
+    checkpoints_dir = _as_run_dir(run).checkpoints_dir
+    if not checkpoints_dir.is_dir():
+        return []
+    _remove_stale_temp_files(checkpoints_dir)
+    try:
+        current = _read_pointer(checkpoints_dir)
+    except CheckpointError:
+        return []  # nothing is deleted on the word of a corrupt pointer
+    if current is None:
+        return []
+    removed = [p for p in checkpoints_dir.glob(f"*{CHECKPOINT_SUFFIX}") if p.name != current]
+    for path in removed:
+        path.unlink(missing_ok=True)
+    return removed
 
 
 def _as_run_dir(run: RunDir | str | os.PathLike) -> RunDir:
@@ -423,10 +520,25 @@ def _torch_save_atomic(path: Path, state: Mapping[str, Any], what: str) -> None:
     _remove_stale_temp_files(path.parent)
     try:
         _atomic_write(path, lambda file: torch.save(state, file))
-    except OSError as exc:
-        # A full disk or a permission problem: the user's to fix. Other exceptions (e.g. an
-        # object that cannot be pickled) are bugs and keep their traceback.
-        raise CheckpointError(f"cannot write {what} {path}: {exc}") from exc
+    except (OSError, RuntimeError) as exc:
+        # A full disk or a permission problem: the user's to fix. (torch.save's zip writer turns a
+        # failed write, e.g. ENOSPC, into a RuntimeError raised while handling the OSError.) Other
+        # exceptions (e.g. an object that cannot be pickled) are bugs and keep their traceback.
+        os_error = _os_error_in(exc)
+        if os_error is None:
+            raise
+        raise CheckpointError(f"cannot write {what} {path}: {os_error.strerror or os_error}") from exc
+
+
+def _os_error_in(exc: BaseException | None) -> OSError | None:
+    """The OSError behind ``exc``, following the chain of causes and contexts."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, OSError):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def _read_pointer(checkpoints_dir: Path) -> str | None:
@@ -500,6 +612,10 @@ def list_snapshots(run: RunDir | str | os.PathLike) -> list[str]:
 def _load_state(path: Path, map_location: Any, weights_only: bool) -> dict:
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
+    # torch.save writes a zip archive: anything else (random bytes, a truncated head) is corrupt,
+    # whatever the unpickler would make of it.
+    if not zipfile.is_zipfile(path):
+        raise CheckpointError(f"checkpoint {path} is truncated or corrupt: it is not a torch checkpoint archive")
     try:
         state = torch.load(path, map_location=map_location, weights_only=weights_only)
     except pickle.UnpicklingError as exc:

@@ -37,14 +37,14 @@ DDPG_SMALL = {"hidden_dim": 256, "batch_size": 256}
 class DDPGConfig:
     """The DDPG backbone shared by the URLB-style agents (docs/methods.md, "DDPG core")."""
 
-    hidden_dim: int = param(1024, "Hidden width H of the actor and the critic.")
-    batch_size: int = param(1024, "Transitions per gradient update.")
-    lr: float = param(1e-4, "Adam learning rate of the actor and the critic.")
-    discount: float = param(0.99, "Discount gamma.")
-    nstep: int = param(3, "n of the n-step returns; next_obs of a batch row is s_{t+n}.")
-    tau: float = param(0.01, "EMA rate of the target critic (after every update).")
-    stddev: float = param(0.2, "Fixed policy standard deviation sigma.")
-    stddev_clip: float = param(0.3, "Noise clip of training samples.")
+    hidden_dim: int = param(1024, "Hidden width H of the actor and the critic.", at_least=1)
+    batch_size: int = param(1024, "Transitions per gradient update.", at_least=1)
+    lr: float = param(1e-4, "Adam learning rate of the actor and the critic.", above=0)
+    discount: float = param(0.99, "Discount gamma.", at_least=0, at_most=1)
+    nstep: int = param(3, "n of the n-step returns; next_obs of a batch row is s_{t+n}.", at_least=1)
+    tau: float = param(0.01, "EMA rate of the target critic (after every update).", above=0, at_most=1)
+    stddev: float = param(0.2, "Fixed policy standard deviation sigma.", at_least=0)
+    stddev_clip: float = param(0.3, "Noise clip of training samples.", at_least=0)
     fused_adam: bool = param(True, "Use torch's fused Adam where available (same math).")
 
 
@@ -103,9 +103,16 @@ class DDPGCore(nn.Module):
 class IntrinsicDDPGAgent(Agent):
     """A URLB-style method: the DDPG core trained on one intrinsic-reward module.
 
-    Subclasses set ``name`` and implement :meth:`build_reward` (and :meth:`from_config`). The run
-    config's ``ddpg`` section configures the core; ``skill_dim`` is 0 for the exploration methods.
+    Subclasses set ``name`` and ``reward_section`` (the run config's section of their reward
+    module) and implement :meth:`build_reward`. The run config's ``ddpg`` section configures the
+    core; ``skill_dim`` is 0 for the exploration methods.
     """
+
+    reward_section: str = ""
+
+    @classmethod
+    def from_config(cls, obs_dim, action_dim, config, device="cpu") -> IntrinsicDDPGAgent:
+        return cls(obs_dim, action_dim, config.ddpg, getattr(config, cls.reward_section), device, config.perf)
 
     def __init__(self, obs_dim: int, action_dim: int, ddpg: DDPGConfig, reward_config,
                  device: str | torch.device = "cpu", perf: PerfConfig | None = None, skill_dim: int = 0):

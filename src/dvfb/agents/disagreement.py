@@ -11,10 +11,7 @@ from dvfb.rewards.disagreement import DisagreementConfig, DisagreementReward
 
 class DisagreementAgent(IntrinsicDDPGAgent):
     name = "disagreement"
-
-    @classmethod
-    def from_config(cls, obs_dim, action_dim, config, device="cpu"):
-        return cls(obs_dim, action_dim, config.ddpg, config.disagreement, device, config.perf)
+    reward_section = "disagreement"
 
     def build_reward(self) -> DisagreementReward:
         return DisagreementReward(self.obs_dim, self.action_dim, self.reward_config)

@@ -1,6 +1,6 @@
 """DVFB: FB plus an exploration critic driven by an intrinsic reward (RND + contrastive entropy).
 
-algorithm.md §0, §7.2-§7.7, §7.11. The skill value Q_M = F . z keeps learning the successor
+docs/methods.md §0, §7.2-§7.7, §7.11. The skill value Q_M = F . z keeps learning the successor
 measure; a separate z-conditioned twin critic Q_P learns from the intrinsic reward
 ``r_rnd + beta * r_ce`` and the actor maximises ``Q_M + alpha * Q_P``. "DVFB w/o CE" is
 ``use_ce = false`` (no contrastive module at all, ``r = r_rnd``). ``exploration.reward`` swaps the
@@ -33,31 +33,31 @@ EXPLORATION_REWARDS = ("rnd_ce", "icm_apt", "proto", "cic")
 
 @dataclass
 class ExplorationConfig:
-    """DVFB's exploration part (algorithm.md §7.3-§7.7, §14)."""
+    """DVFB's exploration part (docs/methods.md §7.3-§7.7, §14)."""
 
     reward: str = param("rnd_ce", "Intrinsic reward of Q_P: rnd_ce (RND + beta * CE, the paper's), or the Table 8 "
                         "variants icm_apt, proto, cic (settings in the --icm-apt.*, --proto.*, --cic.* sections).",
                         EXPLORATION_REWARDS)
-    alpha: float = param(5.0, "Weight of Q_P in the actor objective (D2; authors' code: 50).")
+    alpha: float = param(5.0, "Weight of Q_P in the actor objective (D2; authors' code: 50).", at_least=0)
     alpha_mode: str = param("constant", "constant alpha, or adaptive alpha_t = 2 mean(Q_M)/mean(Q_P).",
                             ("constant", "adaptive"))
-    beta: float = param(0.5, "Weight of the contrastive-entropy reward (D4).")
+    beta: float = param(0.5, "Weight of the contrastive-entropy reward (D4).", at_least=0)
     use_ce: bool = param(True, "Use the contrastive-entropy term; false gives 'DVFB w/o CE'.")
     rnd_input: str = param("next_obs", "Which state RND scores: s' (paper) or s (authors' code), D6.",
                            ("next_obs", "obs"))
-    rnd_rep_dim: int = param(512, "Output width of the RND networks.")
-    rnd_obs_clip: float = param(5.0, "Clip of the batch-normalised RND input.")
-    contrastive_hidden_dim: int = param(1024, "Hidden width of the contrastive encoders.")
-    ce_k: int = param(12, "Number of neighbours k of the CE reward.")
+    rnd_rep_dim: int = param(512, "Output width of the RND networks.", at_least=1)
+    rnd_obs_clip: float = param(5.0, "Clip of the batch-normalised RND input.", above=0)
+    contrastive_hidden_dim: int = param(1024, "Hidden width of the contrastive encoders.", at_least=1)
+    ce_k: int = param(12, "Number of neighbours k of the CE reward.", at_least=1)
     ce_neighbours: str = param("least_similar", "Which skills are the CE neighbours (D7).", CE_NEIGHBOURS)
     ce_aggregate: str = param("log_of_mean", "log of the mean or mean of the logs (D7).", CE_AGGREGATES)
-    ce_temperature: float = param(1.0, "Temperature of the CE reward.")
-    nce_temperature: float = param(1.0, "Temperature T of the NCE loss (D14).")
+    ce_temperature: float = param(1.0, "Temperature of the CE reward.", above=0)
+    nce_temperature: float = param(1.0, "Temperature T of the NCE loss (D14).", above=0)
     nce_exact_positive: bool = param(False, "Subtract the exact positive term in the NCE denominator.")
 
 
 class DVFBAgent(FBAgent):
-    """FB + exploration critic Q_P (algorithm.md §7)."""
+    """FB + exploration critic Q_P (docs/methods.md §7)."""
 
     name = "dvfb"
 

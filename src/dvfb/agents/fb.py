@@ -1,6 +1,6 @@
 """Online forward-backward (FB) agent: networks, losses and the pre-training update.
 
-Implements algorithm.md §4.1-§4.3, §5 (task vectors), §7.8-§7.11 (FB loss, auxiliary implicit-
+Implements docs/methods.md §4.1-§4.3, §5 (task vectors), §7.8-§7.11 (FB loss, auxiliary implicit-
 reward Q loss, orthonormality, actor) and §8.2 (z inference). DVFB (:mod:`dvfb.agents.dvfb`) is this
 agent plus an exploration critic; the update is written with one hook, :meth:`FBAgent._explore`,
 and one extra actor term, :meth:`FBAgent._actor_bonus`, that DVFB overrides.
@@ -48,27 +48,28 @@ BACKWARD_INPUTS = ("state", "transition", "code_exact")
 
 @dataclass
 class FBConfig:
-    """Hyper-parameters of the FB representation and its actor (algorithm.md §12, §14)."""
+    """Hyper-parameters of the FB representation and its actor (docs/methods.md §12, §14)."""
 
-    z_dim: int = param(50, "Dimension d of F, B and the task vector z.")
-    hidden_dim: int = param(1024, "Hidden width H of the actor, F and the critics.")
-    feature_dim: int = param(512, "Feature width E of each two-stream encoder (actor, F).")
-    backward_hidden_dim: int = param(526, "Hidden width Hb of the backward map B.")
+    z_dim: int = param(50, "Dimension d of F, B and the task vector z.", at_least=1)
+    hidden_dim: int = param(1024, "Hidden width H of the actor, F and the critics.", at_least=1)
+    feature_dim: int = param(512, "Feature width E of each two-stream encoder (actor, F).", at_least=1)
+    backward_hidden_dim: int = param(526, "Hidden width Hb of the backward map B.", at_least=1)
     actor_arch: str = param("two_stream", "Actor architecture (§4.1).", ("two_stream", "mlp"))
     backward_input: str = param("state", "What B reads: s' (state), (s, s') (transition) or the "
                                 "authors' pairings (code_exact), see D1.", BACKWARD_INPUTS)
-    batch_size: int = param(1024, "Transitions per gradient update.")
-    lr: float = param(1e-4, "Adam learning rate of every network.")
-    backward_lr_coef: float = param(1.0, "B's learning rate as a multiple of lr.")
-    discount: float = param(0.99, "Discount gamma.")
-    tau: float = param(0.01, "EMA rate of the target networks (after every update).")
-    stddev: float = param(0.2, "Fixed policy standard deviation sigma.")
-    stddev_clip: float = param(0.3, "Noise clip of training samples.")
-    mix_ratio: float = param(0.5, "Fraction of training z's replaced by projected B of replay states.")
-    ortho_coef: float = param(1.0, "Weight lambda of the orthonormality loss.")
+    batch_size: int = param(1024, "Transitions per gradient update.", at_least=2)
+    lr: float = param(1e-4, "Adam learning rate of every network.", above=0)
+    backward_lr_coef: float = param(1.0, "B's learning rate as a multiple of lr.", above=0)
+    discount: float = param(0.99, "Discount gamma.", at_least=0, at_most=1)
+    tau: float = param(0.01, "EMA rate of the target networks (after every update).", above=0, at_most=1)
+    stddev: float = param(0.2, "Fixed policy standard deviation sigma.", at_least=0)
+    stddev_clip: float = param(0.3, "Noise clip of training samples.", at_least=0)
+    mix_ratio: float = param(0.5, "Fraction of training z's replaced by projected B of replay states.",
+                             at_least=0, at_most=1)
+    ortho_coef: float = param(1.0, "Weight lambda of the orthonormality loss.", at_least=0)
     q_loss: bool = param(True, "Add the auxiliary implicit-reward Q loss (D10).")
-    q_loss_coef: float = param(0.01, "Weight of the auxiliary Q loss.")
-    cov_ridge: float = param(0.0, "Ridge added to Cov(B) before solving Cov x = z (D19).")
+    q_loss_coef: float = param(0.01, "Weight of the auxiliary Q loss.", at_least=0)
+    cov_ridge: float = param(0.0, "Ridge added to Cov(B) before solving Cov x = z (D19).", at_least=0)
     fused_adam: bool = param(True, "Use torch's fused (single-kernel) Adam where available; false = "
                              "the multi-tensor (foreach) implementation. Same math either way.")
 
@@ -91,7 +92,9 @@ def implicit_reward(backward: torch.Tensor, z: torch.Tensor, ridge: float = 0.0)
     if ridge:
         cov = cov + ridge * torch.eye(d, device=backward.device, dtype=backward.dtype)
     rhs = z.T if z.dim() == 2 else z.unsqueeze(-1)
-    solution, _info = torch.linalg.solve_ex(cov, rhs)  # solve_ex: no host sync on failure
+    # solve_ex: no host sync on failure. An exactly singular Cov(B) gives non-finite rewards, which
+    # stop the run with an error naming the step and --fb.cov-ridge when the metrics are read (D19).
+    solution, _info = torch.linalg.solve_ex(cov, rhs)
     if z.dim() == 2:
         return (backward * solution.T).sum(-1)
     return backward @ solution.squeeze(-1)
@@ -124,7 +127,7 @@ def infer_z_from_rewards(features: torch.Tensor, rewards: torch.Tensor,
 
 
 class FBAgent(Agent):
-    """Online FB: reward-free pre-training of F, B and pi(s, z) (algorithm.md §7 with alpha = 0)."""
+    """Online FB: reward-free pre-training of F, B and pi(s, z) (docs/methods.md §7 with alpha = 0)."""
 
     name = "fb"
 
@@ -310,6 +313,8 @@ class FBAgent(Agent):
             q = skill_values(forward, z)  # (2, N)
             q_loss = (q - target_q).pow(2).mean(-1).sum()
             losses["fb_q_loss"] = q_loss
+            # Logged so that a singular Cov(B) is named as such when the metrics are read back (D19).
+            losses["implicit_reward"] = reward.mean()
             total = total + c.q_loss_coef * q_loss
         losses["fb_total"] = total
         return losses

@@ -1,4 +1,4 @@
-"""Dual-value fine-tuning with reward mapping, for any FB-family agent (algorithm.md §9).
+"""Dual-value fine-tuning with reward mapping, for any FB-family agent (docs/methods.md §9).
 
 F and B are frozen; a freshly initialised twin task critic Q_F learns from the downstream reward
 rescaled so that its running mean matches the running mean of FB's implicit reward, and the
@@ -26,14 +26,14 @@ from dvfb.replay import Batch
 class FinetuneConfig(FinetuneProtocol):
     """Dual-value fine-tuning of the FB family: the protocol plus the options of §9, §12, §14."""
 
-    eta: float = param(0.5, "Weight of the skill value Q_M in the actor objective; 0 = w/o SVF (D3).")
+    eta: float = param(0.5, "Weight of the skill value Q_M in the actor objective; 0 = w/o SVF (D3).", at_least=0)
     eta_mode: str = param("constant", "constant eta, or adaptive eta_i = Q_F,i / Q_M,i.", ("constant", "adaptive"))
-    qf_coef: float = param(1.0, "Weight of Q_F in the actor objective (authors' code: 50 with eta = 1).")
+    qf_coef: float = param(1.0, "Weight of Q_F in the actor objective (authors' code: 50 with eta = 1).", at_least=0)
     reward_mapping: bool = param(True, "Map the task reward to the implicit reward's scale; false = w/o MAP.")
-    reward_map_eps: float = param(1e-8, "eps in r * mu_fb / (mu_t + eps).")
+    reward_map_eps: float = param(1e-8, "eps in r * mu_fb / (mu_t + eps).", at_least=0)
     reward_map_abs: bool = param(False, "Use |mu_fb| so a negative implicit mean cannot flip the reward sign.")
-    reward_map_clip: float | None = param(None, "Clip mapped rewards to [-c, c]; none = no clip.")
-    cov_ridge: float = param(0.0, "Ridge added to Cov(B) in the implicit reward.")
+    reward_map_clip: float | None = param(None, "Clip mapped rewards to [-c, c]; none = no clip.", above=0)
+    cov_ridge: float = param(0.0, "Ridge added to Cov(B) in the implicit reward.", at_least=0)
     keep_inference_data: bool = param(False, "Seed the fine-tuning buffer with the inference transitions (D12).")
 
 

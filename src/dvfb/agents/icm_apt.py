@@ -12,10 +12,7 @@ from dvfb.rewards.icm import ICMAPTConfig, ICMAPTReward
 
 class ICMAPTAgent(IntrinsicDDPGAgent):
     name = "icm_apt"
-
-    @classmethod
-    def from_config(cls, obs_dim, action_dim, config, device="cpu"):
-        return cls(obs_dim, action_dim, config.ddpg, config.icm_apt, device, config.perf)
+    reward_section = "icm_apt"
 
     def build_reward(self) -> ICMAPTReward:
         return ICMAPTReward(self.obs_dim, self.action_dim, self.reward_config)

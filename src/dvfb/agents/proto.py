@@ -12,10 +12,7 @@ from dvfb.rewards.proto import ProtoConfig, ProtoReward
 
 class ProtoAgent(IntrinsicDDPGAgent):
     name = "proto"
-
-    @classmethod
-    def from_config(cls, obs_dim, action_dim, config, device="cpu"):
-        return cls(obs_dim, action_dim, config.ddpg, config.proto, device, config.perf)
+    reward_section = "proto"
 
     def build_reward(self) -> ProtoReward:
         return ProtoReward(self.obs_dim, self.action_dim, self.reward_config)

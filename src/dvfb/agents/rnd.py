@@ -16,20 +16,17 @@ from dvfb.rewards.rnd import RND_INPUTS, RNDReward
 class RNDConfig:
     """RND's predictor/target networks and their reward."""
 
-    hidden_dim: int = param(1024, "Hidden width of the predictor and the frozen target.")
-    rep_dim: int = param(512, "Output width of both networks.")
-    obs_clip: float = param(5.0, "Clip of the batch-normalised input.")
+    hidden_dim: int = param(1024, "Hidden width of the predictor and the frozen target.", at_least=1)
+    rep_dim: int = param(512, "Output width of both networks.", at_least=1)
+    obs_clip: float = param(5.0, "Clip of the batch-normalised input.", above=0)
     input: str = param("obs", "Which state of a batch row is scored: s_t (URLB) or s_{t+n}.", RND_INPUTS)
-    scale: float = param(1.0, "Multiplier of the normalised novelty.")
-    lr: float = param(1e-4, "Adam learning rate of the predictor.")
+    scale: float = param(1.0, "Multiplier of the normalised novelty.", at_least=0)
+    lr: float = param(1e-4, "Adam learning rate of the predictor.", above=0)
 
 
 class RNDAgent(IntrinsicDDPGAgent):
     name = "rnd"
-
-    @classmethod
-    def from_config(cls, obs_dim, action_dim, config, device="cpu"):
-        return cls(obs_dim, action_dim, config.ddpg, config.rnd, device, config.perf)
+    reward_section = "rnd"
 
     def build_reward(self) -> RNDReward:
         c = self.reward_config

@@ -2,7 +2,7 @@
 
 Protocol (``dvfb analyze-value RUN --task T``):
 
-1. infer z_r for the task exactly as zero-shot does (algorithm.md §8.1-8.2, through
+1. infer z_r for the task exactly as zero-shot does (docs/methods.md §8.1-8.2, through
    :func:`dvfb.workflows.evaluate.collect_inference_data` and
    :func:`dvfb.workflows.zeroshot.infer_task_vector`, budgets from ``--inference.*``);
 2. build K skills: z_r itself and K-1 skills ``proj((1 - lam) z_r + lam z_k)`` with prior draws
@@ -131,7 +131,7 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
         raise AnalysisError("--max-steps must be at least 1")
     run, config = open_pretrained_run(run_path)
     check_task_in_domain(task, config.domain)
-    cfg = merge(config.inference, inference or {})
+    cfg = merge(config.inference, inference or {}, "inference.")
     out_dir = run.path / "analysis"
     outputs = [out_dir / f"value_{task}.{ext}" for ext in ("csv", "png", "json")]
     existing = [p for p in outputs if p.exists()]

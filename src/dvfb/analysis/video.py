@@ -1,6 +1,6 @@
 """Videos of zero-shot evaluation episodes (``dvfb video``), rendered headless through MuJoCo.
 
-The policy is the zero-shot evaluation policy of algorithm.md §8.3: mean actions of
+The policy is the zero-shot evaluation policy of docs/methods.md §8.3: mean actions of
 ``pi(s, z_r)``. z_r is read from ``RUN/zeroshot/<task>.json`` when that result exists for the same
 snapshot (so the video shows the policy that was scored), otherwise it is inferred as zero-shot
 does (§8.1-8.2, budgets from ``--inference.*``).
@@ -140,7 +140,7 @@ def _task_vector(run, config, agent, task: str, snapshot: int, final: int, infer
         data = read_json(stored)
         if isinstance(data.get("z"), list) and data.get("snapshot_frames") == snapshot:
             return torch.tensor(data["z"], dtype=torch.float32, device=agent.device), f"z from {stored}"
-    cfg = merge(config.inference, inference or {})
+    cfg = merge(config.inference, inference or {}, "inference.")
     rng = seed_everything(seed)
     env = envs.make(task, seed=seed)
     buffer = collect_inference_data(agent, env, cfg.steps, cfg.random_action_steps, rng,

@@ -1,6 +1,6 @@
-"""Gymnasium front end for a dm_control task: the URLB states-mode wrapper stack (tasks.md §3).
+"""Gymnasium front end for a dm_control task: the URLB states-mode wrapper stack (docs/tasks.md §3).
 
-What :class:`DMCGymEnv` does, per tasks.md §3 (innermost first):
+What :class:`DMCGymEnv` does, per docs/tasks.md §3 (innermost first):
 
 * §3.2/§3.4: actions are float32 in, float64 into MuJoCo; the observation dict is concatenated in
   key order into one float32 vector (a new array every step, safe to store).
@@ -31,7 +31,7 @@ _LAST = dm_env.StepType.LAST
 
 
 class DMCGymEnv(gym.Env):
-    """A dm_control ``control.Environment`` behind the gymnasium API (tasks.md §3).
+    """A dm_control ``control.Environment`` behind the gymnasium API (docs/tasks.md §3).
 
     Attributes:
         task_spec: the :class:`TaskSpec` of the task being run.
@@ -69,7 +69,7 @@ class DMCGymEnv(gym.Env):
         self.action_space = spaces.Box(-1.0, 1.0, shape=(task_spec.action_dim,), dtype=_FLOAT32)
         self._action_shape = (task_spec.action_dim,)
 
-        # Affine map a_env = low + (high - low) / 2 * (a + 1) (tasks.md §3.5), written in URLB's
+        # Affine map a_env = low + (high - low) / 2 * (a + 1) (docs/tasks.md §3.5), written in URLB's
         # operation order. For [-1, 1] actuators it is the identity and is skipped entirely.
         bounds = dmc_env.action_spec()
         low = np.broadcast_to(np.asarray(bounds.minimum, _FLOAT64), self._action_shape).copy()
@@ -90,7 +90,7 @@ class DMCGymEnv(gym.Env):
         """Start an episode. A ``seed`` reseeds every RNG of the task (initial-state draws).
 
         Without a seed the task's RNG streams continue, so successive episodes differ; a given
-        seed always reproduces the same initial state (tasks.md §2 "Seeding").
+        seed always reproduces the same initial state (docs/tasks.md §2 "Seeding").
         """
         super().reset(seed=seed)
         if seed is not None:
@@ -152,6 +152,37 @@ class DMCGymEnv(gym.Env):
         for name, (kind, keys, pos, has_gauss, cached) in state.items():
             randoms[name].set_state((kind, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
 
+    def get_episode_state(self) -> dict:
+        """The state of the episode in progress, for a checkpoint taken mid-episode (a signal).
+
+        MuJoCo's full integration state (time, positions, velocities, activations, controls,
+        solver warm start, ...), the episode's step count and the task's RNG streams. Restored with
+        :meth:`set_episode_state` into an env of the same task, the episode continues exactly as
+        it would have (tests/test_envs.py).
+        """
+        mujoco, spec = _mujoco_state_api()
+        model, data = self.physics.model.ptr, self.physics.data.ptr
+        state = np.empty(mujoco.mj_stateSize(model, spec), dtype=_FLOAT64)
+        mujoco.mj_getState(model, data, state, spec)
+        return {"physics": state.tolist(), "step_count": int(self.dmc_env._step_count),
+                "needs_reset": bool(self._needs_reset), "rng": self.get_rng_state()}
+
+    def set_episode_state(self, state: dict) -> None:
+        mujoco, spec = _mujoco_state_api()
+        model, data = self.physics.model.ptr, self.physics.data.ptr
+        physics = np.asarray(state["physics"], dtype=_FLOAT64)
+        if physics.shape != (mujoco.mj_stateSize(model, spec),):
+            raise ValueError(f"episode state has {physics.shape[0]} physics values, this task needs "
+                             f"{mujoco.mj_stateSize(model, spec)}")
+        mujoco.mj_setState(model, data, physics, spec)
+        # dm_control steps Euler models as mj_step2 then mj_step1, so the derived quantities of
+        # the current state (what mj_step1 computes) must be up to date before the next step.
+        mujoco.mj_step1(model, data)
+        self.dmc_env._step_count = int(state["step_count"])
+        self.dmc_env._reset_next_step = bool(state["needs_reset"])
+        self._needs_reset = bool(state["needs_reset"])
+        self.set_rng_state(state["rng"])
+
     def render(self):
         """An RGB frame (H, W, 3) from camera 0 when ``render_mode == "rgb_array"``, else None."""
         if self.render_mode != "rgb_array":
@@ -162,7 +193,7 @@ class DMCGymEnv(gym.Env):
     # ----------------------------------------------------------------------------------------
 
     def _flatten(self, observation) -> np.ndarray:
-        """Concatenate the observation dict in key order into float32 (tasks.md §2, §3.4).
+        """Concatenate the observation dict in key order into float32 (docs/tasks.md §2, §3.4).
 
         One ``np.concatenate`` straight into a new float32 array (no float64 intermediate).
         Scalar entries (e.g. the walker's height) are wrapped as 1-element sequences; which entries
@@ -197,6 +228,15 @@ class DMCGymEnv(gym.Env):
     def __repr__(self) -> str:
         mode = ", reward_free" if self.reward_free else ""
         return f"<DMCGymEnv {self.task_spec.name}{mode}>"
+
+
+def _mujoco_state_api():
+    """``mujoco`` and the state spec of a mid-episode checkpoint: everything MuJoCo needs to
+    continue an episode bit for bit. Imported here, not at the top: mujoco's import reads MUJOCO_GL,
+    whose errors the rendering code reports with advice (dvfb.analysis.video)."""
+    import mujoco
+
+    return mujoco, mujoco.mjtState.mjSTATE_INTEGRATION
 
 
 def reseed_task(task, seed: int) -> None:

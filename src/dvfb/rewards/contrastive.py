@@ -126,16 +126,16 @@ class ContrastiveEntropyReward(IntrinsicReward):
 class CICConfig:
     """CIC's contrastive module and its APT reward (docs/methods.md, "CIC")."""
 
-    hidden_dim: int = param(1024, "Hidden width of g, the transition predictor and the skill projector.")
-    temperature: float = param(0.5, "Temperature T of the NCE loss.")
-    knn_k: int = param(16, "Neighbours k of the APT particle-entropy reward.")
-    knn_clip: float = param(0.0005, "Clip subtracted from the normalised kNN distances.")
+    hidden_dim: int = param(1024, "Hidden width of g, the transition predictor and the skill projector.", at_least=1)
+    temperature: float = param(0.5, "Temperature T of the NCE loss.", above=0)
+    knn_k: int = param(16, "Neighbours k of the APT particle-entropy reward.", at_least=1)
+    knn_clip: float = param(0.0005, "Clip subtracted from the normalised kNN distances.", at_least=0)
     knn_rms: bool = param(True, "Divide the distances by the running variance (APT-CIC).")
-    lr: float = param(1e-4, "Adam learning rate of the contrastive module.")
+    lr: float = param(1e-4, "Adam learning rate of the contrastive module.", above=0)
 
 
 class CICReward(IntrinsicReward):
-    """CIC (§8 of docs/methods.md): an NCE step, then ``log(1 + mean kNN distance)`` of g(s') within
+    """CIC (docs/methods.md, "CIC"): an NCE step, then ``log(1 + mean kNN distance)`` of g(s') within
     the batch, divided by the running variance of the distances (APT-CIC). The contrastive term
     only shapes g; it is not part of the reward (the released code's "og" reward)."""
 

@@ -1,5 +1,5 @@
 """Disagreement: the variance of an ensemble of forward models as the reward
-(docs/methods.md, "Rewards: Disagreement").
+(docs/methods.md, "Disagreement").
 
 K forward models ``f_k(s, a) = Linear(s+a -> H) -> ReLU -> Linear(H -> s)`` predict the agent's
 successor state ``s'`` (``batch.next_obs``). Each update first trains them on the mean L2 error
@@ -24,9 +24,9 @@ from dvfb.rewards.base import IntrinsicReward, Runner
 class DisagreementConfig:
     """Disagreement's ensemble (URLB defaults)."""
 
-    ensemble_size: int = param(5, "Number K of forward models in the ensemble.")
-    hidden_dim: int = param(1024, "Hidden width H of every forward model.")
-    lr: float = param(1e-4, "Adam learning rate of the ensemble.")
+    ensemble_size: int = param(5, "Number K of forward models in the ensemble.", at_least=2)
+    hidden_dim: int = param(1024, "Hidden width H of every forward model.", at_least=1)
+    lr: float = param(1e-4, "Adam learning rate of the ensemble.", above=0)
 
 
 class DisagreementReward(IntrinsicReward):

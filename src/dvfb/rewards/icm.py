@@ -1,5 +1,5 @@
 """ICM-APT: an ICM-trained representation scored by particle entropy
-(docs/methods.md, "Rewards: ICM-APT").
+(docs/methods.md, "ICM-APT").
 
 A trunk ``e(s) = Tanh(LN(Linear(s -> rep)))`` is trained jointly with
 
@@ -31,10 +31,10 @@ from dvfb.rewards.knn import NORMALISERS, KNNConfig, ParticleEntropy
 class ICMAPTConfig:
     """ICM-APT's networks and kNN estimator (URLB ``icm_apt`` defaults)."""
 
-    rep_dim: int = param(512, "Width of the trunk's representation e(s).")
-    hidden_dim: int = param(1024, "Hidden width of the forward and inverse models.")
-    lr: float = param(1e-4, "Adam learning rate of trunk, forward and inverse model.")
-    knn_k: int = param(12, "Neighbours k of the particle-entropy reward (self included).")
+    rep_dim: int = param(512, "Width of the trunk's representation e(s).", at_least=1)
+    hidden_dim: int = param(1024, "Hidden width of the forward and inverse models.", at_least=1)
+    lr: float = param(1e-4, "Adam learning rate of trunk, forward and inverse model.", above=0)
+    knn_k: int = param(12, "Neighbours k of the particle-entropy reward (self included).", at_least=1)
     knn_average: bool = param(True, "Average over the k nearest distances (false: the k-th only).")
     knn_clip: float = param(0.0, "Clip subtracted from the kNN distances (negative: none).")
     knn_normaliser: str = param("none", "Running normalisation of the kNN distances.", NORMALISERS)

@@ -1,4 +1,4 @@
-"""Proto: prototypical representation + kNN-to-queue novelty (docs/methods.md, "Rewards: Proto").
+"""Proto: prototypical representation + kNN-to-queue novelty (docs/methods.md, "Proto").
 
 Networks (the encoder is the identity on states):
 
@@ -38,15 +38,15 @@ from dvfb.rewards.knn import nearest_distances
 class ProtoConfig:
     """Proto's networks, queue and Sinkhorn settings (URLB ``proto`` defaults)."""
 
-    pred_dim: int = param(128, "Output width of the predictor (and of the projector).")
-    proj_dim: int = param(512, "Hidden width of the projector.")
-    num_protos: int = param(512, "Number of prototypes; also the candidates enqueued per update.")
-    temperature: float = param(0.1, "Softmax / Sinkhorn temperature T of the prototype scores.")
-    topk: int = param(3, "The reward is the distance to the topk-th nearest queue entry.")
-    queue_size: int = param(2048, "Length of the FIFO queue of candidates.")
-    target_tau: float = param(0.05, "EMA rate of the target predictor.")
-    sinkhorn_iters: int = param(3, "Sinkhorn-Knopp iterations of the target assignment.")
-    lr: float = param(1e-4, "Adam learning rate of predictor, projector and prototypes.")
+    pred_dim: int = param(128, "Output width of the predictor (and of the projector).", at_least=1)
+    proj_dim: int = param(512, "Hidden width of the projector.", at_least=1)
+    num_protos: int = param(512, "Number of prototypes; also the candidates enqueued per update.", at_least=1)
+    temperature: float = param(0.1, "Softmax / Sinkhorn temperature T of the prototype scores.", above=0)
+    topk: int = param(3, "The reward is the distance to the topk-th nearest queue entry.", at_least=1)
+    queue_size: int = param(2048, "Length of the FIFO queue of candidates.", at_least=1)
+    target_tau: float = param(0.05, "EMA rate of the target predictor.", above=0, at_most=1)
+    sinkhorn_iters: int = param(3, "Sinkhorn-Knopp iterations of the target assignment.", at_least=1)
+    lr: float = param(1e-4, "Adam learning rate of predictor, projector and prototypes.", above=0)
 
 
 def sinkhorn_knopp(scores: torch.Tensor, iters: int = 3) -> torch.Tensor:

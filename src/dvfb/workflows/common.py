@@ -10,8 +10,15 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
 import random
+import signal
+import sys
+import threading
+import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -20,7 +27,7 @@ from tqdm import tqdm
 from dvfb import envs
 from dvfb.agents import Agent, make_agent
 from dvfb.config import to_dict
-from dvfb.errors import CheckpointError, ConfigError, NonFiniteLossError
+from dvfb.errors import CheckpointError, ConfigError, NonFiniteLossError, RunDirError, RunInterrupted
 from dvfb.runs import RunDir, list_snapshots, load_snapshot
 from dvfb.workflows.config import PretrainConfig, agent_sections, load_run_config, resolve_device, run_config_from_dict
 
@@ -62,7 +69,9 @@ class MetricWindow:
 
     ``flush`` stacks the window into one tensor, copies it to the host (the only sync), raises
     :class:`NonFiniteLossError` naming the first update and loss that went NaN/inf, and returns
-    the window means.
+    the window means. (So a non-finite value is reported at the next flush, at most ``log_every``
+    steps later, naming the exact step; no checkpoint is written in between, because every
+    checkpoint flushes first.)
     """
 
     def __init__(self) -> None:
@@ -83,9 +92,13 @@ class MetricWindow:
         bad = ~np.isfinite(values)
         if bad.any():
             row, col = np.argwhere(bad)[0]
-            raise NonFiniteLossError(
-                f"non-finite value {keys[col]}={values[row, col]} at step {steps[row]}; training "
-                "stopped and the last good checkpoint was kept")
+            bad_keys = [keys[c] for c in np.flatnonzero(bad[row])]
+            hint = ""
+            if any("implicit_reward" in k for k in bad_keys):
+                hint = ("; the implicit reward B Cov(B)^-1 z is not finite: Cov(B) is singular or "
+                        "ill-conditioned, add a ridge with --fb.cov-ridge 1e-6 (or larger)")
+            raise NonFiniteLossError(f"non-finite value {keys[col]}={values[row, col]} at step {steps[row]} "
+                                     f"(non-finite there: {', '.join(bad_keys)}){hint}")
         return dict(zip(keys, values.mean(0).tolist()))
 
 
@@ -96,14 +109,172 @@ def check_action(action: np.ndarray, step: int, window: MetricWindow) -> None:
     """
     if not np.isfinite(action).all():
         window.flush()
-        raise NonFiniteLossError(f"the policy produced a non-finite action at step {step}; "
-                                 "training stopped and the last good checkpoint was kept")
+        raise NonFiniteLossError(f"the policy produced a non-finite action at step {step}")
 
 
-def progress_bar(total: int, initial: int, desc: str, enabled: bool | None = None) -> tqdm:
-    """A frames progress bar (rate in frames/s, ETA). ``enabled=None``: only on a terminal."""
-    return tqdm(total=total, initial=initial, desc=desc, unit="frame", unit_scale=True,
-                dynamic_ncols=True, disable=(None if enabled is None else not enabled), smoothing=0.05)
+def checkpoint_note(last_checkpoint: int | None) -> str:
+    """What a user can resume from after a failure: the truth about the checkpoints."""
+    if last_checkpoint is None:
+        return "no resume checkpoint had been written yet"
+    return f"the resume checkpoint of step {last_checkpoint} is intact (--resume continues from it)"
+
+
+@contextlib.contextmanager
+def reported_failures(what: str, run_path: Path, last_checkpoint: Callable[[], int | None]):
+    """Around a training loop: a non-finite loss or a disk error (full, read-only, permissions)
+    becomes one line that says what stopped and which checkpoint is intact."""
+    try:
+        yield
+    except NonFiniteLossError as exc:
+        raise NonFiniteLossError(f"{exc}; {what} stopped, {checkpoint_note(last_checkpoint())}") from exc
+    except OSError as exc:
+        where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+        raise RunDirError(f"cannot write to {run_path}: {exc.strerror or exc}{where}; {what} stopped, "
+                          f"{checkpoint_note(last_checkpoint())}") from exc
+
+
+def interrupted(stop: StopSignals, what: str, step: int, total: int, run_path: Path) -> RunInterrupted:
+    """The error a loop raises after checkpointing on a signal."""
+    return RunInterrupted(f"{stop.name} received: {what} stopped at step {step} of {total} with a checkpoint; "
+                          f"continue with the same command plus --resume (run {run_path})", stop.received)
+
+
+class StopSignals:
+    """SIGTERM and SIGINT ask the loop to stop: it finishes its current step, writes a checkpoint and
+    raises :class:`~dvfb.errors.RunInterrupted`. A second SIGINT stops at once (KeyboardInterrupt).
+
+    Handlers are installed only in the main thread (signals cannot be caught elsewhere) and the
+    previous ones are restored on exit.
+    """
+
+    SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def _handle(self, signum, _frame) -> None:
+        if self.received is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.received = signum
+
+    def __enter__(self) -> StopSignals:
+        if threading.current_thread() is threading.main_thread():
+            for signum in self.SIGNALS:
+                self._previous[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.received).name if self.received is not None else ""
+
+
+def notify(message: str) -> None:
+    """A one-line status message of a run on stderr (memory estimate, resume point, progress)."""
+    print(message, file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# Memory
+
+
+def available_memory_bytes() -> int | None:
+    """MemAvailable of /proc/meminfo (Linux), None elsewhere."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as file:
+            for line in file:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def format_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(n) < 1024 or unit == "PiB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return f"{n:.1f} PiB"
+
+
+def learner_state_bytes(agent: torch.nn.Module) -> int:
+    """About what the networks hold during training: parameters, gradients and Adam's two moments."""
+    return sum(p.numel() * p.element_size() * (4 if p.requires_grad else 1) for p in agent.parameters())
+
+
+def check_memory(parts: dict[str, int], what: str, device: torch.device) -> None:
+    """Print the memory estimate of a run and refuse one that cannot fit the machine (host memory;
+    on CUDA the replay and networks live on the GPU, whose free memory is checked instead)."""
+    total = sum(parts.values())
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        available, where = free, f"free on {device}"
+    else:
+        available, where = available_memory_bytes(), "available"
+    detail = " + ".join(f"{name} {format_bytes(n)}" for name, n in parts.items())
+    notify(f"[{what}] memory estimate: {detail} = {format_bytes(total)}"
+           + (f" ({format_bytes(available)} {where})" if available is not None else ""))
+    if available is not None and total > available:
+        raise ConfigError(f"{what} needs about {format_bytes(total)} ({detail}) but only {format_bytes(available)} "
+                          f"is {where}; lower --replay-capacity or the network sizes")
+
+
+# ---------------------------------------------------------------------------------------------
+# Progress
+
+
+class Progress:
+    """Progress of a loop in frames (or steps): a tqdm bar on a terminal; without one (cluster logs,
+    CI) a line every ``DVFB_PROGRESS_SECONDS`` seconds (default 30) with frames, frames/s and ETA.
+
+    ``enabled``: True always shows the bar, False shows nothing, None decides by the terminal.
+    """
+
+    def __init__(self, total: int, initial: int, desc: str, enabled: bool | None = None, unit: str = "frame"):
+        self.total, self.done, self.desc, self.unit = total, initial, desc, unit
+        terminal = sys.stderr.isatty()
+        self.bar = None
+        self.interval = None
+        if enabled or (enabled is None and terminal):
+            self.bar = tqdm(total=total, initial=initial, desc=desc, unit=unit, unit_scale=True,
+                            dynamic_ncols=True, smoothing=0.05)
+        elif enabled is None:
+            self.interval = float(os.environ.get("DVFB_PROGRESS_SECONDS", "30"))
+        self._start_time = self._last_line = time.monotonic()
+        self._start_done = initial
+
+    def update(self, n: int = 1) -> None:
+        self.done += n
+        if self.bar is not None:
+            self.bar.update(n)
+        elif self.interval is not None:
+            now = time.monotonic()
+            if now - self._last_line >= self.interval:
+                self._last_line = now
+                self.line(now)
+
+    def line(self, now: float | None = None) -> None:
+        now = time.monotonic() if now is None else now
+        rate = (self.done - self._start_done) / max(now - self._start_time, 1e-9)
+        remaining = (self.total - self.done) / rate if rate > 0 else float("inf")
+        eta = time.strftime("%H:%M:%S", time.gmtime(remaining)) if remaining < 86400 * 365 else "?"
+        notify(f"[{self.desc}] {self.done}/{self.total} {self.unit}s ({100 * self.done / max(self.total, 1):.0f}%), "
+               f"{rate:.1f} {self.unit}s/s, ETA {eta}")
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def progress_bar(total: int, initial: int, desc: str, enabled: bool | None = None) -> Progress:
+    """A frames progress display (see :class:`Progress`)."""
+    return Progress(total, initial, desc, enabled)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -212,7 +383,7 @@ def agent_from_snapshot(state: dict, config: PretrainConfig, device: str | torch
 
 
 def check_task_in_domain(task: str, domain: str) -> None:
-    """A zero-shot/fine-tuning task must share the pre-training domain's dynamics (tasks.md §5)."""
+    """A zero-shot/fine-tuning task must share the pre-training domain's dynamics (docs/tasks.md §5)."""
     if task not in envs.TASKS:
         envs.make(task)  # raises ConfigError listing the valid names
     task_domain = envs.TASKS[task].domain

@@ -30,7 +30,7 @@ import torch
 from dvfb.agents import get_spec
 from dvfb.agents.perf import PerfConfig
 from dvfb.agents.protocols import InferenceConfig
-from dvfb.config import from_dict, merge, param, replace
+from dvfb.config import from_dict, merge, param, replace, require_updates
 from dvfb.errors import ConfigError
 from dvfb.runs import read_json
 
@@ -41,30 +41,36 @@ DEFAULT_AGENT = "dvfb"
 
 @dataclass
 class PretrainConfig:
-    """A reward-free pre-training run (algorithm.md §7): the fields every method shares.
+    """A reward-free pre-training run (docs/methods.md §7): the fields every method shares.
 
     A run's config is an instance of :func:`run_config_class` ``(agent)``, a subclass with the
     method's sections and its family's ``inference`` and ``finetune`` configs.
     """
 
     agent: str = param(DEFAULT_AGENT, "Method (see `dvfb agents`).")
-    domain: str = param("walker", "Domain; pre-training uses its reward-free task (tasks.md §5).")
+    domain: str = param("walker", "Domain; pre-training uses its reward-free task (docs/tasks.md §5).")
     preset: str = param("paper", "Preset the config was built from.", PRESETS)
-    frames: int = param(2_000_000, "Pre-training environment steps.")
-    seed: int = param(0, "Seed of the environment, the networks and the sampling.")
+    frames: int = param(2_000_000, "Pre-training environment steps.", at_least=1)
+    seed: int = param(0, "Seed of the environment, the networks and the sampling.", at_least=0)
     device: str = param("auto", "Torch device: auto picks cuda when available.", DEVICES)
-    torch_threads: int = param(0, "torch.set_num_threads; 0 keeps torch's default.")
-    seed_frames: int = param(4000, "Uniform-action steps before the first update.")
-    update_every: int = param(2, "One gradient update every this many steps.")
+    torch_threads: int = param(0, "torch.set_num_threads; 0 keeps torch's default.", at_least=0)
+    seed_frames: int = param(4000, "Uniform-action steps before the first update.", at_least=0)
+    update_every: int = param(2, "One gradient update every this many steps.", at_least=1)
     update_z_every: int = param(300, "Methods with skills: resample the rollout skill when the step counter is a "
-                                "multiple of this (and at every episode start).")
-    replay_capacity: int = param(1_000_000, "Replay capacity in transitions.")
+                                "multiple of this (and at every episode start).", at_least=1)
+    replay_capacity: int = param(1_000_000, "Replay capacity in transitions.", at_least=1)
     snapshot_frames: list[int] = param([100_000, 500_000, 1_000_000, 2_000_000],
-                                       "Frames at which agent snapshots are kept (the final frame always is).")
-    checkpoint_every: int = param(100_000, "Write a resume checkpoint at the first episode end after this many steps.")
-    log_every: int = param(1000, "Read metrics back from the device and log them every this many steps.")
+                                       "Frames at which agent snapshots are kept (the final frame always is).",
+                                       at_least=1)
+    checkpoint_every: int = param(100_000, "Write a resume checkpoint at the first episode end after this many steps.",
+                                  at_least=1)
+    log_every: int = param(1000, "Read metrics back from the device and log them every this many steps.", at_least=1)
     perf: PerfConfig = field(default_factory=PerfConfig,
                              metadata={"help": "How the pre-training updates execute (precision, compilation)."})
+
+    def check(self) -> None:
+        """Relations between fields (ranges are checked per field)."""
+        require_updates("--frames", self.frames, "--seed-frames", self.seed_frames)
 
 
 @functools.cache

@@ -1,4 +1,4 @@
-"""Policy evaluation and reward-labelled data collection (algorithm.md §8.1, §8.3)."""
+"""Policy evaluation and reward-labelled data collection (docs/methods.md §8.1, §8.3)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,10 @@ from dvfb.agents import Agent
 from dvfb.replay import ReplayBuffer
 
 
-def evaluate_policy(agent: Agent, env, z: torch.Tensor | None, episodes: int) -> list[float]:
+def evaluate_policy(agent: Agent, env, z: torch.Tensor | None, episodes: int, progress=None) -> list[float]:
     """Undiscounted returns of ``episodes`` mean-action episodes with a fixed skill z (§8.3), or
-    without one for methods that have none (``z = None``)."""
+    without one for methods that have none (``z = None``). ``progress.update(1)`` is called per
+    step when given (a :class:`~dvfb.workflows.common.Progress`)."""
     returns = []
     for _ in range(episodes):
         obs, _ = env.reset()
@@ -19,13 +20,15 @@ def evaluate_policy(agent: Agent, env, z: torch.Tensor | None, episodes: int) ->
         while not done:
             obs, reward, terminated, truncated, _ = env.step(agent.act(obs, z, explore=False))
             total += reward
+            if progress is not None:
+                progress.update(1)
             done = terminated or truncated
         returns.append(total)
     return returns
 
 
 def collect_inference_data(agent: Agent, env, steps: int, random_action_steps: int,
-                           rng: np.random.Generator, max_episode_length: int = 1000) -> ReplayBuffer:
+                           rng: np.random.Generator, max_episode_length: int = 1000, progress=None) -> ReplayBuffer:
     """``steps`` reward-labelled steps in the task (§8.1).
 
     A new skill from the method's prior at every step; uniform actions for the first
@@ -49,4 +52,6 @@ def collect_inference_data(agent: Agent, env, steps: int, random_action_steps: i
         obs, reward, terminated, truncated, _ = env.step(action)
         buffer.add(action, reward, 0.0 if terminated else 1.0, obs)
         done = terminated or truncated
+        if progress is not None:
+            progress.update(1)
     return buffer

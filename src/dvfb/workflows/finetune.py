@@ -1,4 +1,4 @@
-"""Fine-tuning of a pre-trained run on a task (algorithm.md §9; docs/methods.md, "Protocols").
+"""Fine-tuning of a pre-trained run on a task (docs/methods.md §9; docs/methods.md, "Protocols").
 
 Protocol: load the snapshot; obtain the task's skill by the family's zero-shot strategy (FB family:
 collect the inference steps and infer z_r, §8.1-8.2; methods without skills: none); evaluate
@@ -26,12 +26,26 @@ import torch
 from dvfb import envs
 from dvfb.agents import get_spec
 from dvfb.config import from_dict, merge, param, to_dict
-from dvfb.errors import CheckpointError, ConfigError
+from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.replay import ReplayBuffer
-from dvfb.runs import MetricsLogger, RunDir, load_checkpoint, read_json, save_checkpoint, write_json_atomic
+from dvfb.runs import (
+    MetricsLogger,
+    RunDir,
+    RunLock,
+    check_writable,
+    load_checkpoint,
+    read_json,
+    remove_orphaned_checkpoints,
+    save_checkpoint,
+    write_json_atomic,
+)
 from dvfb.workflows.common import (
     MetricWindow,
+    StopSignals,
     check_action,
+    interrupted,
+    notify,
+    reported_failures,
     check_task_in_domain,
     load_pretrained_agent,
     open_pretrained_run,
@@ -90,16 +104,40 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
              finetune: dict | None = None, seed: int | None = None, name: str | None = None,
              resume: bool = False, overwrite: bool = False, progress: bool | None = None,
              device: str | None = None) -> RunDir:
-    """Fine-tune a pre-trained run on ``task``; returns the fine-tuning run directory."""
+    """Fine-tune a pre-trained run on ``task``; returns the fine-tuning run directory.
+
+    As pre-training: options are checked and the directory's writability is tested before any
+    work, one process writes a fine-tuning run at a time, SIGTERM/SIGINT checkpoint the current
+    step and raise :class:`~dvfb.errors.RunInterrupted`, a failed resume changes no file and
+    resuming a finished run is a no-op.
+    """
+    if resume and overwrite:
+        raise ConfigError("--resume and --overwrite contradict each other: pass one of them")
     run, config = open_pretrained_run(run_path)
     check_task_in_domain(task, config.domain)
     agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
     run_config = finetune_run_config_class(config.agent)(
         pretrain_run=str(run.path), agent=config.agent, domain=config.domain, task=task, snapshot=snapshot,
         seed=config.seed if seed is None else seed, device=str(agent.device),
-        inference=merge(config.inference, inference or {}), finetune=merge(config.finetune, finetune or {}))
-    cfg = run_config.finetune
+        inference=merge(config.inference, inference or {}, "inference."),
+        finetune=merge(config.finetune, finetune or {}, "finetune."))
     path = run.path / "finetune" / (name or task)
+    if resume:
+        RunDir.open(path)  # names what is missing before anything else happens
+    else:
+        check_writable(path.parent)
+    lock = RunLock(path)
+    with lock:
+        try:
+            return _finetune_locked(run, config, agent, run_config, path, task, resume, overwrite, progress)
+        except BaseException:
+            lock.remove_if_created()
+            raise
+
+
+def _finetune_locked(run, config, agent, run_config, path, task, resume, overwrite, progress) -> RunDir:
+    cfg = run_config.finetune
+    state = None
     if resume:
         ft_run = RunDir.open(path)
         stored = to_dict(load_finetune_run_config(ft_run))
@@ -110,7 +148,19 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
         if stored != requested:
             diffs = sorted(k for k in stored if stored[k] != requested[k])
             raise ConfigError(f"--resume with a different configuration: {', '.join(diffs)} differ from {path}/config.json")
-        ft_run.save_config(run_config)
+        summary = path / "finetune_summary.json"
+        if summary.is_file():
+            done = read_json(summary, RunDirError).get("frames")
+            if isinstance(done, int) and done >= cfg.frames:
+                notify(f"[finetune] {path} already finished at {done} frames; nothing to resume")
+                return ft_run
+        remove_orphaned_checkpoints(ft_run)
+        try:
+            state = load_checkpoint(ft_run, None, map_location=agent.device)
+        except CheckpointError as exc:
+            raise CheckpointError(f"cannot resume {path}: {exc}") from exc
+        if state.get("kind") != RESUME_KIND:
+            raise CheckpointError(f"{path}: the latest checkpoint is not a fine-tuning checkpoint")
     else:
         ft_run = RunDir.create(path, run_config, overwrite=overwrite)
 
@@ -122,22 +172,26 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
                           max_episode_length=max_len, device=agent.device)
     finetuner_cls = get_spec(config.agent).finetuner
     started = time.time()
+    episode_start, obs = True, None
 
-    if resume:
+    if state is not None:
         try:
-            state = load_checkpoint(ft_run, None, map_location=agent.device)
-        except CheckpointError as exc:
-            raise CheckpointError(f"cannot resume {path}: {exc}") from exc
-        if state.get("kind") != RESUME_KIND:
-            raise CheckpointError(f"{path}: the latest checkpoint is not a fine-tuning checkpoint")
-        z = None if state["z"] is None else state["z"].to(agent.device)
-        finetuner = finetuner_cls(agent, z, cfg)
-        finetuner.load_training_state(state["finetuner"])
-        replay.load_state_dict(state["replay"])
-        restore_rng_state(state["rng"], rng)
-        env.unwrapped.set_rng_state(state["env_rng"])
-        eval_env.unwrapped.set_rng_state(state["eval_env_rng"])
-        step, curve, inference_info = state["step"], state["curve"], state["inference_info"]
+            z = None if state["z"] is None else state["z"].to(agent.device)
+            finetuner = finetuner_cls(agent, z, cfg)
+            finetuner.load_training_state(state["finetuner"])
+            replay.load_state_dict(state["replay"])
+            restore_rng_state(state["rng"], rng)
+            env.unwrapped.set_rng_state(state["env_rng"])
+            eval_env.unwrapped.set_rng_state(state["eval_env_rng"])
+            step, curve, inference_info = state["step"], state["curve"], state["inference_info"]
+            if state.get("episode_state") is not None:  # written mid-episode on a signal
+                env.unwrapped.set_episode_state(state["episode_state"]["env"])
+                obs = np.asarray(state["episode_state"]["obs"], dtype=np.float32)
+                episode_start = False
+        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+            raise CheckpointError(f"cannot resume {path}: the checkpoint does not fit this run ({exc})") from exc
+        ft_run.save_config(run_config)  # only now may the config change (a larger --finetune.frames)
+        notify(f"[finetune] resuming {path} from step {step} (of {cfg.frames})")
         logger = MetricsLogger(ft_run, purge_step=step + 1)
     else:
         keep = getattr(cfg, "keep_inference_data", False)
@@ -159,47 +213,61 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     needs = finetuner.replay_needs()
     action_dim = agent.action_dim
     bar = progress_bar(cfg.frames, step, f"finetune {task}", progress)
-    last_checkpoint = step
-    episode_start = True
-    obs = None
-    while step < cfg.frames:
-        if episode_start:
-            obs, _ = env.reset()
-            replay.start_episode(obs)
-            episode_start = False
-        if finetuner.uniform_seed_actions and step < cfg.seed_frames:
-            action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
-        else:
-            action = agent.act(obs, z, explore=True)
-        if step >= cfg.seed_frames and step % cfg.update_every == 0:
-            window.add(step, finetuner.update(needs.sample(replay)))
-        check_action(action, step, window)
-        obs, reward, terminated, truncated, _ = env.step(action)
-        replay.add(action, reward, 0.0 if terminated else 1.0, obs, z_host)
-        step += 1
-        bar.update(1)
-        if step % 1000 == 0 or step == cfg.frames:
-            means = window.flush()
-            if means:
-                logger.log(step, means, prefix="train")
-        if step % cfg.eval_every == 0 or step == cfg.frames:
-            returns = evaluate_policy(agent, eval_env, z, cfg.eval_episodes)
-            curve.append(_curve_point(step, returns))
-            logger.log(step, {"eval_return": curve[-1]["mean_return"]}, prefix="eval")
-            _write_curve(ft_run, run_config, curve, inference_info, z)
-        if terminated or truncated:
-            episode_start = True
-            if step - last_checkpoint >= cfg.checkpoint_every or step >= cfg.frames:
-                window.flush()
-                save_checkpoint(ft_run, {
-                    "kind": RESUME_KIND, "step": step, "z": None if z is None else z.cpu(), "curve": curve,
-                    "inference_info": inference_info, "finetuner": finetuner.training_state(),
-                    "replay": replay.state_dict(), "rng": rng_state(rng),
-                    "env_rng": env.unwrapped.get_rng_state(), "eval_env_rng": eval_env.unwrapped.get_rng_state()},
-                    f"resume_{step}")
-                last_checkpoint = step
-    bar.close()
-    logger.close()
+    last_checkpoint = step if state is not None else None
+
+    def save_resume(mid_episode: bool = False) -> None:
+        checkpoint = {
+            "kind": RESUME_KIND, "step": step, "z": None if z is None else z.cpu(), "curve": curve,
+            "inference_info": inference_info, "finetuner": finetuner.training_state(),
+            "replay": replay.state_dict(), "rng": rng_state(rng),
+            "env_rng": env.unwrapped.get_rng_state(), "eval_env_rng": eval_env.unwrapped.get_rng_state()}
+        if mid_episode:
+            checkpoint["episode_state"] = {"env": env.unwrapped.get_episode_state(), "obs": torch.as_tensor(obs)}
+        save_checkpoint(ft_run, checkpoint, f"resume_{step}")
+
+    stop = StopSignals()
+    try:
+        with stop, reported_failures("fine-tuning", ft_run.path, lambda: last_checkpoint):
+            while step < cfg.frames:
+                if episode_start:
+                    obs, _ = env.reset()
+                    replay.start_episode(obs)
+                    episode_start = False
+                if finetuner.uniform_seed_actions and step < cfg.seed_frames:
+                    action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
+                else:
+                    action = agent.act(obs, z, explore=True)
+                if step >= cfg.seed_frames and step % cfg.update_every == 0:
+                    window.add(step, finetuner.update(needs.sample(replay)))
+                check_action(action, step, window)
+                obs, reward, terminated, truncated, _ = env.step(action)
+                replay.add(action, reward, 0.0 if terminated else 1.0, obs, z_host)
+                step += 1
+                bar.update(1)
+                if step % 1000 == 0 or step == cfg.frames:
+                    means = window.flush()
+                    if means:
+                        logger.log(step, means, prefix="train")
+                if step % cfg.eval_every == 0 or step == cfg.frames:
+                    returns = evaluate_policy(agent, eval_env, z, cfg.eval_episodes)
+                    curve.append(_curve_point(step, returns))
+                    logger.log(step, {"eval_return": curve[-1]["mean_return"]}, prefix="eval")
+                    _write_curve(ft_run, run_config, curve, inference_info, z)
+                if terminated or truncated:
+                    episode_start = True
+                    if step - (last_checkpoint or 0) >= cfg.checkpoint_every or step >= cfg.frames:
+                        window.flush()
+                        save_resume()
+                        last_checkpoint = step
+                if stop.received is not None and step < cfg.frames:
+                    window.flush()
+                    if last_checkpoint != step:
+                        save_resume(mid_episode=not episode_start)
+                        last_checkpoint = step
+                    raise interrupted(stop, "fine-tuning", step, cfg.frames, ft_run.path)
+    finally:
+        bar.close()
+        logger.close()
     write_json_atomic(ft_run.path / "finetune_summary.json", {
         "task": task, "frames": step, "wall_clock_s": time.time() - started,
         "zero_shot_return": curve[0]["mean_return"], "final_return": curve[-1]["mean_return"]})

@@ -1,4 +1,4 @@
-"""Reward-free online pre-training (algorithm.md §7.1) with snapshots and exact resume.
+"""Reward-free online pre-training (docs/methods.md §7.1) with snapshots and exact resume.
 
 The loop, per environment step ``t``:
 
@@ -9,13 +9,15 @@ The loop, per environment step ``t``:
 * if ``t >= seed_frames`` and ``t % update_every == 0``: one agent update on a batch drawn as the
   agent's :class:`~dvfb.agents.base.ReplayNeeds` say (before stepping, as the authors' code does);
 * step the environment, store ``(a, task reward, discount, s', skill)``. The task reward is stored
-  for logging only: the reward-free update never reads it (tasks.md §3).
+  for logging only: the reward-free update never reads it (docs/tasks.md §3).
 
 The loop talks to the method only through the :class:`~dvfb.agents.base.Agent` interface.
 
 Resume checkpoints are written at episode ends, so a resumed run starts a fresh episode exactly
 where the uninterrupted run would have, with the same RNG streams, replay content, optimiser
-states and counters.
+states and counters. On SIGTERM/SIGINT a checkpoint is written after the current step, mid-episode
+if need be: it then also holds the environment's full MuJoCo state, the current observation and
+skill, and the resumed run continues that episode exactly as the uninterrupted one does.
 """
 
 from __future__ import annotations
@@ -25,17 +27,34 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from dvfb import envs
 from dvfb.agents import make_agent
 from dvfb.config import to_dict
-from dvfb.errors import CheckpointError, ConfigError, NonFiniteLossError
+from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.replay import ReplayBuffer
-from dvfb.runs import MetricsLogger, RunDir, load_checkpoint, save_checkpoint, save_snapshot, write_json_atomic
+from dvfb.runs import (
+    MetricsLogger,
+    RunDir,
+    RunLock,
+    load_checkpoint,
+    read_json,
+    remove_orphaned_checkpoints,
+    save_checkpoint,
+    save_snapshot,
+    write_json_atomic,
+)
 from dvfb.workflows.common import (
     MetricWindow,
+    StopSignals,
     check_action,
+    check_memory,
+    interrupted,
+    learner_state_bytes,
+    notify,
     progress_bar,
+    reported_failures,
     restore_rng_state,
     rng_state,
     seed_everything,
@@ -67,42 +86,97 @@ def _check_resume_config(stored: PretrainConfig, requested: PretrainConfig) -> N
 
 def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = False, overwrite: bool = False,
              progress: bool | None = None, command: list[str] | None = None) -> RunDir:
-    """Pre-train ``config.agent`` on ``config.domain`` into ``run_path``; returns the run directory."""
+    """Pre-train ``config.agent`` on ``config.domain`` into ``run_path``; returns the run directory.
+
+    Everything that can be checked is checked before the run directory is touched: the options,
+    the device, the memory the replay buffer and the networks need. One process writes a run
+    directory at a time (:class:`~dvfb.runs.RunLock`). SIGTERM or SIGINT finish the current step,
+    write a checkpoint (mid-episode if need be) and raise :class:`~dvfb.errors.RunInterrupted`;
+    ``resume`` continues exactly from it. A failed resume changes no file; resuming a finished run
+    is a no-op. Disk errors (full, read-only, permissions) end the run with one line and leave the
+    previous checkpoint intact.
+    """
+    run_path = Path(run_path)
+    if resume and overwrite:
+        raise ConfigError("--resume and --overwrite contradict each other: --resume continues the run in "
+                          f"{run_path}, --overwrite deletes it; pass one of them")
     if config.domain not in envs.DOMAINS:
         raise ConfigError(f"unknown domain {config.domain!r}; choose one of {', '.join(envs.DOMAINS)}")
-    if resume:
-        run = RunDir.open(run_path)
-        _check_resume_config(load_run_config(run.config_path), config)
-        run.save_config(config)
-    else:
-        run = RunDir.create(run_path, config, overwrite=overwrite, command=command)
+    if resume and not (run_path / "config.json").is_file():
+        RunDir.open(run_path)  # names what is missing
     device = setup_torch(config)
     rng = seed_everything(config.seed)
     env = envs.make(config.domain, seed=config.seed, reward_free=True)
     obs_dim = env.observation_space.shape[0]
     action_dim = env.action_space.shape[0]
     agent = make_agent(config.agent, obs_dim, action_dim, config, device)
-    replay = ReplayBuffer(config.replay_capacity, obs_dim, action_dim, agent.skill_dim,
-                          max_episode_length=envs.TASKS[envs.pretrain_task(config.domain)].episode_length,
-                          device=device)
-    needs = agent.replay_needs()
+    episode_length = envs.TASKS[envs.pretrain_task(config.domain)].episode_length
+    check_memory({"replay": ReplayBuffer.estimate_nbytes(config.replay_capacity, obs_dim, action_dim, agent.skill_dim,
+                                                         episode_length),
+                  "networks": learner_state_bytes(agent)}, f"pretrain {config.agent} {config.domain}", device)
+    lock = RunLock(run_path)
+    with lock:
+        try:
+            return _pretrain_locked(config, run_path, resume, overwrite, progress, command, device, rng, env, agent,
+                                    episode_length)
+        except BaseException:
+            lock.remove_if_created()
+            raise
 
-    step, episode, last_checkpoint = 0, 0, 0
-    first_reset = True
+
+def _pretrain_locked(config, run_path, resume, overwrite, progress, command, device, rng, env, agent,
+                     episode_length) -> RunDir:
+    obs_dim, action_dim = agent.obs_dim, agent.action_dim
+    state = None
     if resume:
+        run = RunDir.open(run_path)
+        _check_resume_config(load_run_config(run.config_path), config)
+        finished = _finished_frames(run)
+        if finished is not None and finished >= config.frames:
+            notify(f"[pretrain] {run.path} already finished at {finished} frames (>= --frames {config.frames}); "
+                   "nothing to resume")
+            return run
+        remove_orphaned_checkpoints(run)
         try:
             state = load_checkpoint(run, None, map_location=device)
         except CheckpointError as exc:
             raise CheckpointError(f"cannot resume {run.path}: {exc}") from exc
         if state.get("kind") != RESUME_KIND or state.get("agent") != config.agent:
             raise CheckpointError(f"{run.path}: the latest checkpoint is not a {config.agent} pre-training checkpoint")
-        agent.load_training_state(state["agent_state"])
-        replay.load_state_dict(state["replay"])
-        restore_rng_state(state["rng"], rng)
-        env.unwrapped.set_rng_state(state["env_rng"])
+        if state["step"] >= config.frames:
+            raise ConfigError(f"--frames {config.frames} is not beyond the checkpoint's step {state['step']}; "
+                              "pass a larger --frames to extend the run")
+    else:
+        run = RunDir.create(run_path, config, overwrite=overwrite, command=command)
+    replay = ReplayBuffer(config.replay_capacity, obs_dim, action_dim, agent.skill_dim,
+                          max_episode_length=episode_length, device=device)
+    needs = agent.replay_needs()
+
+    step, episode, last_checkpoint = 0, 0, None
+    first_reset = True
+    obs = skill = skill_host = None
+    episode_return, episode_start = 0.0, True
+    if state is not None:
+        try:
+            agent.load_training_state(state["agent_state"])
+            replay.load_state_dict(state["replay"])
+            restore_rng_state(state["rng"], rng)
+            env.unwrapped.set_rng_state(state["env_rng"])
+            episode_state = state.get("episode_state")
+            if episode_state is not None:  # a checkpoint written mid-episode (on a signal)
+                env.unwrapped.set_episode_state(episode_state["env"])
+                obs = np.asarray(episode_state["obs"], dtype=np.float32)
+                skill = episode_state["skill"]
+                skill = None if skill is None else skill.to(device)
+                skill_host = None if skill is None else skill.cpu().numpy()
+                episode_return, episode_start = float(episode_state["episode_return"]), False
+        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+            raise CheckpointError(f"cannot resume {run.path}: the checkpoint does not fit this run ({exc})") from exc
         step, episode, last_checkpoint = state["step"], state["episode"], state["step"]
         first_reset = False
-        log.info("resumed %s at step %d", run.path, step)
+        # Only now, with the checkpoint loaded, may the run's config change (a larger --frames).
+        run.save_config(config)
+        notify(f"[pretrain] resuming {run.path} from step {step} (of {config.frames})")
 
     # Records up to the checkpointed step belong to the restored state; later ones are redone.
     logger = MetricsLogger(run, purge_step=step + 1 if resume else None)
@@ -111,8 +185,6 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
     bar = progress_bar(config.frames, step, f"pretrain {config.agent} {config.domain}", progress)
     started = time.time()
     start_step = step
-    episode_return, episode_start = 0.0, True
-    obs = skill = skill_host = None
 
     def draw_skill() -> None:
         nonlocal skill, skill_host
@@ -120,62 +192,82 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
         skill = None if drawn is None else drawn[0]
         skill_host = None if skill is None else skill.cpu().numpy()  # what the replay stores; once per draw
 
-    def save_resume() -> None:
-        save_checkpoint(run, {
+    def save_resume(mid_episode: bool = False) -> None:
+        checkpoint = {
             "kind": RESUME_KIND, "agent": config.agent, "config": to_dict(config), "step": step,
             "episode": episode, "agent_state": agent.training_state(), "replay": replay.state_dict(),
-            "rng": rng_state(rng), "env_rng": env.unwrapped.get_rng_state()}, f"resume_{step}")
+            "rng": rng_state(rng), "env_rng": env.unwrapped.get_rng_state()}
+        if mid_episode:
+            checkpoint["episode_state"] = {
+                "env": env.unwrapped.get_episode_state(), "obs": torch.as_tensor(obs),
+                "skill": None if skill is None else skill.cpu(), "episode_return": episode_return}
+        save_checkpoint(run, checkpoint, f"resume_{step}")
 
+    stop = StopSignals()
     try:
-        while step < config.frames:
-            if episode_start:
-                obs, _ = env.reset(seed=config.seed) if first_reset else env.reset()
-                first_reset = False
-                draw_skill()
-                replay.start_episode(obs)
-                episode_return, episode_start = 0.0, False
-            if step % config.update_z_every == 0:
-                draw_skill()
-            if step < config.seed_frames:
-                action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
-            else:
-                action = agent.act(obs, skill, explore=True)
-            if step >= config.seed_frames and step % config.update_every == 0:
-                window.add(step, agent.update(needs.sample(replay)))
-            check_action(action, step, window)
-            obs, _, terminated, truncated, info = env.step(action)
-            task_reward = info["task_reward"]
-            replay.add(action, task_reward, 0.0 if terminated else 1.0, obs, skill_host)
-            episode_return += task_reward
-            step += 1
-            bar.update(1)
+        with stop, reported_failures("training", run.path, lambda: last_checkpoint):
+            while step < config.frames:
+                if episode_start:
+                    obs, _ = env.reset(seed=config.seed) if first_reset else env.reset()
+                    first_reset = False
+                    draw_skill()
+                    replay.start_episode(obs)
+                    episode_return, episode_start = 0.0, False
+                if step % config.update_z_every == 0:
+                    draw_skill()
+                if step < config.seed_frames:
+                    action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
+                else:
+                    action = agent.act(obs, skill, explore=True)
+                if step >= config.seed_frames and step % config.update_every == 0:
+                    window.add(step, agent.update(needs.sample(replay)))
+                check_action(action, step, window)
+                obs, _, terminated, truncated, info = env.step(action)
+                task_reward = info["task_reward"]
+                replay.add(action, task_reward, 0.0 if terminated else 1.0, obs, skill_host)
+                episode_return += task_reward
+                step += 1
+                bar.update(1)
 
-            if step % config.log_every == 0 or step == config.frames:
-                means = window.flush()
-                if means:
-                    elapsed = time.time() - started
-                    means["fps"] = (step - start_step) / max(elapsed, 1e-9)
-                    logger.log(step, means, prefix="train")
-            if step in snapshots:
-                window.flush()
-                save_snapshot(run, snapshot_state(agent, config, step), snapshot_name(step))
-            if terminated or truncated:
-                episode += 1
-                episode_start = True
-                logger.log(step, {"episode": episode, "episode_task_reward": episode_return}, prefix="episode")
-                if step - last_checkpoint >= config.checkpoint_every or step >= config.frames:
+                if step % config.log_every == 0 or step == config.frames:
+                    means = window.flush()
+                    if means:
+                        elapsed = time.time() - started
+                        means["fps"] = (step - start_step) / max(elapsed, 1e-9)
+                        logger.log(step, means, prefix="train")
+                if step in snapshots:
                     window.flush()
-                    save_resume()
-                    last_checkpoint = step
-    except NonFiniteLossError:
-        logger.close()
+                    save_snapshot(run, snapshot_state(agent, config, step), snapshot_name(step))
+                if terminated or truncated:
+                    episode += 1
+                    episode_start = True
+                    logger.log(step, {"episode": episode, "episode_task_reward": episode_return}, prefix="episode")
+                    if step - (last_checkpoint or 0) >= config.checkpoint_every or step >= config.frames:
+                        window.flush()
+                        save_resume()
+                        last_checkpoint = step
+                if stop.received is not None and step < config.frames:
+                    window.flush()
+                    if last_checkpoint != step:
+                        save_resume(mid_episode=not episode_start)
+                        last_checkpoint = step
+                    raise interrupted(stop, "pre-training", step, config.frames, run.path)
+    finally:
         bar.close()
-        raise
-    bar.close()
+        logger.close()
     elapsed = time.time() - started
     write_json_atomic(run.path / "pretrain_summary.json", {
         "agent": config.agent, "domain": config.domain, "frames": step, "episodes": episode,
         "wall_clock_s": elapsed, "frames_per_s": (step - start_step) / max(elapsed, 1e-9),
         "resumed_from": start_step if resume else None, "device": str(device)})
-    logger.close()
     return run
+
+
+def _finished_frames(run: RunDir) -> int | None:
+    """Frames of a finished pre-training (its summary), None when it has not finished."""
+    path = run.path / "pretrain_summary.json"
+    if not path.is_file():
+        return None
+    summary = read_json(path, RunDirError)
+    frames = summary.get("frames") if isinstance(summary, dict) else None
+    return frames if isinstance(frames, int) else None

@@ -1,4 +1,4 @@
-"""Zero-shot evaluation of a pre-trained run on a task (algorithm.md §8).
+"""Zero-shot evaluation of a pre-trained run on a task (docs/methods.md §8).
 
 The method's family chooses the strategy (its :class:`~dvfb.agents.registry.AgentSpec`):
 
@@ -33,8 +33,14 @@ from dvfb.agents import Agent, get_spec
 from dvfb.config import merge, to_dict
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.replay import ReplayBuffer
-from dvfb.runs import RunDir, load_checkpoint, write_json_atomic
-from dvfb.workflows.common import check_task_in_domain, load_pretrained_agent, open_pretrained_run, seed_everything
+from dvfb.runs import RunDir, check_writable, load_checkpoint, write_json_atomic
+from dvfb.workflows.common import (
+    Progress,
+    check_task_in_domain,
+    load_pretrained_agent,
+    open_pretrained_run,
+    seed_everything,
+)
 from dvfb.workflows.config import InferenceConfig, PretrainConfig
 from dvfb.workflows.evaluate import collect_inference_data, evaluate_policy
 
@@ -99,8 +105,13 @@ def result_path(run: RunDir, task: str, snapshot: int, final_snapshot: int) -> P
 
 def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, inference: dict | None = None,
              seed: int | None = None, z_source: str = "rewards", reward_fn: str | Callable | None = None,
-             goal: np.ndarray | None = None, overwrite: bool = False, device: str | None = None) -> dict:
-    """Infer z for ``task`` from a pre-trained run and evaluate ``pi(., z)``; returns the result."""
+             goal: np.ndarray | None = None, overwrite: bool = False, device: str | None = None,
+             progress: bool | None = None) -> dict:
+    """Infer z for ``task`` from a pre-trained run and evaluate ``pi(., z)``; returns the result.
+
+    ``progress``: True shows a bar, False nothing, None a bar on a terminal and otherwise a line
+    every ``DVFB_PROGRESS_SECONDS`` seconds.
+    """
     if z_source not in Z_SOURCES:
         raise ConfigError(f"z_source must be one of {Z_SOURCES}, got {z_source!r}")
     run, config = open_pretrained_run(run_path)
@@ -108,18 +119,28 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
         raise ConfigError(f"--z-source {z_source} needs a method that infers skills; {config.agent!r} has a single "
                           "policy (use the default)")
     check_task_in_domain(task, config.domain)
-    cfg = merge(config.inference, inference or {})
+    cfg = merge(config.inference, inference or {}, "inference.")
     agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
     final = max(config.frames, snapshot)
     out = result_path(run, task, snapshot, final)
     if out.exists() and not overwrite:
         raise RunDirError(f"{out} exists; pass --overwrite to replace it")
+    if goal is not None and z_source == "goal":
+        check_goal(goal, agent.obs_dim, config.domain)
+    # The result is written at the end: fail now, not after the work, if it cannot be.
+    check_writable(out.parent if out.parent.exists() else run.path)
     seed = config.seed if seed is None else seed
     rng = seed_everything(seed)
     started = time.time()
-    z, info = task_skill(agent, run, config, task, cfg, rng, seed, z_source, reward_fn, goal)
-    eval_env = envs.make(task, seed=seed)
-    returns = evaluate_policy(agent, eval_env, z, cfg.eval_episodes)
+    episode_length = envs.TASKS[task].episode_length
+    collected = cfg.steps if (z_source == "rewards" and get_spec(config.agent).zero_shot == "reward_inference") else 0
+    bar = Progress(collected + cfg.eval_episodes * episode_length, 0, f"zeroshot {task}", progress, unit="step")
+    try:
+        z, info = task_skill(agent, run, config, task, cfg, rng, seed, z_source, reward_fn, goal, progress=bar)
+        eval_env = envs.make(task, seed=seed)
+        returns = evaluate_policy(agent, eval_env, z, cfg.eval_episodes, progress=bar)
+    finally:
+        bar.close()
     result = {
         "task": task, "domain": config.domain, "agent": config.agent, "preset": config.preset,
         "pretrain_seed": config.seed, "seed": seed, "snapshot_frames": snapshot,
@@ -136,7 +157,8 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
 
 def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, cfg, rng: np.random.Generator,
                seed: int, z_source: str = "rewards", reward_fn: str | Callable | None = None,
-               goal: np.ndarray | None = None, keep_data: bool = False, env=None) -> tuple[torch.Tensor | None, dict]:
+               goal: np.ndarray | None = None, keep_data: bool = False, env=None,
+               progress=None) -> tuple[torch.Tensor | None, dict]:
     """The skill the policy is evaluated with, by the method family's zero-shot strategy.
 
     ``reward_inference``: collected reward-labelled steps (or a reward function, or a goal);
@@ -150,7 +172,7 @@ def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, cfg
     if z_source == "rewards":
         env = env if env is not None else envs.make(task, seed=seed)
         buffer = collect_inference_data(agent, env, cfg.steps, cfg.random_action_steps, rng,
-                                        envs.TASKS[task].episode_length)
+                                        envs.TASKS[task].episode_length, progress=progress)
         z, info = infer_task_vector(agent, buffer, cfg)
         if keep_data:
             info["buffer"] = buffer
@@ -164,6 +186,15 @@ def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, cfg
         raise ConfigError("z_source 'goal' needs a goal observation")
     z = agent.skill_from_goal(torch.as_tensor(goal, dtype=torch.float32))
     return z, {"goal": np.asarray(goal, dtype=float).tolist()}
+
+
+def check_goal(goal: np.ndarray, obs_dim: int, domain: str) -> None:
+    """A goal is one observation of the domain (or an (s, s') pair for B's pair inputs)."""
+    size = int(np.asarray(goal).size)
+    if size not in (obs_dim, 2 * obs_dim):
+        raise ConfigError(f"--goal has {size} values but {domain} observations have {obs_dim}")
+    if not np.all(np.isfinite(np.asarray(goal, dtype=float))):
+        raise ConfigError("--goal holds a non-finite value")
 
 
 def random_policy_return(task: str, episodes: int, seed: int = 0) -> list[float]:

@@ -1,0 +1,291 @@
+"""Trustworthy runs: bad inputs, signals, the run-directory lock, disk errors, resume hygiene,
+numerics and progress (issue "Trustworthy runs").
+
+Every bad input ends in one line naming the problem, exit status 2 and no run directory. Signals and
+the lock use real subprocesses; the disk-full and read-only cases a real tmpfs mount (root, as in
+CI: a machine where it cannot be mounted fails these tests loudly).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from dvfb.agents.fb import FBAgent
+from dvfb.cli import main
+from dvfb.errors import NonFiniteLossError
+from dvfb.replay import Batch
+from dvfb.runs import RunDir, latest_checkpoint, load_checkpoint, load_snapshot, save_checkpoint
+from dvfb.workflows.common import MetricWindow
+from tiny import OBS, ACT, tiny_config
+
+TINY = ["--fb.z-dim", "8", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
+        "--fb.batch-size", "32", "--log-every", "250", "--torch-threads", "1"]
+MAZE = ["--domain", "point_mass_maze", "--seed-frames", "500", "--update-every", "4", "--checkpoint-every", "1000"]
+FAST_INFERENCE = ["--inference.steps", "200", "--inference.random-action-steps", "100",
+                  "--inference.samples", "200", "--inference.eval-episodes", "1"]
+DVFB = [sys.executable, "-m", "dvfb"]
+
+
+def pretrain_argv(run_dir: Path, frames: int, *extra: str) -> list[str]:
+    return ["pretrain", "--agent", "fb", *MAZE, "--frames", str(frames), "--run-dir", str(run_dir),
+            "--no-progress", *TINY, *extra]
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("trust") / "fb"
+    assert main(pretrain_argv(run_dir, 1000)) == 0
+    return run_dir
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad inputs: one line, exit 2, nothing created
+
+BAD_PRETRAIN = [
+    (["--frames", "0"], "--frames 0 is out of range: it must be >= 1"),
+    (["--frames", "-5"], "--frames -5 is out of range"),
+    (["--frames", "400"], "--frames 400 must be larger than --seed-frames 500"),
+    (["--fb.batch-size", "0"], "--fb.batch-size 0 is out of range: it must be >= 2"),
+    (["--fb.hidden-dim", "0"], "--fb.hidden-dim 0 is out of range"),
+    (["--fb.lr", "-1"], "--fb.lr -1.0 is out of range: it must be > 0"),
+    (["--fb.lr", "nan"], "--fb.lr nan is not a finite number"),
+    (["--update-every", "0"], "--update-every 0 is out of range"),
+    (["--log-every", "0"], "--log-every 0 is out of range"),
+    (["--seed", "-1"], "--seed -1 is out of range: it must be >= 0"),
+    (["--fb.z-dim", "0"], "--fb.z-dim 0 is out of range"),
+    (["--replay-capacity", "1000000000000"], "lower --replay-capacity"),
+    (["--device", "cuda"], "device 'cuda' was requested but torch sees no CUDA device"),
+    (["--resume", "--overwrite"], "--resume and --overwrite contradict each other"),
+]
+
+
+@pytest.mark.parametrize("extra,message", BAD_PRETRAIN, ids=[" ".join(e) for e, _ in BAD_PRETRAIN])
+def test_bad_pretrain_option_is_one_line_exit_2_and_creates_nothing(extra, message, tmp_path, capsys):
+    if "--device" in extra and torch.cuda.is_available():
+        pytest.fail("this test needs a machine without CUDA")
+    run_dir = tmp_path / "run"
+    assert main(pretrain_argv(run_dir, 1000, *extra)) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err, err
+    assert len(err.splitlines()) <= 2 and "Traceback" not in err  # the memory estimate may precede it
+    assert not run_dir.exists()
+
+
+BAD_ZEROSHOT = [
+    (["--inference.eval-episodes", "0"], "--inference.eval-episodes 0 is out of range"),
+    (["--inference.reward-quantile", "2"], "--inference.reward-quantile 2.0 is out of range: it must be >= 0 and <= 1"),
+    (["--inference.random-action-steps", "300"], "must be at most --inference.steps 200"),
+    (["--z-source", "goal", "--goal", "1,2,3"], "--goal has 3 values but point_mass_maze observations have 4"),
+]
+
+
+@pytest.mark.parametrize("extra,message", BAD_ZEROSHOT, ids=[" ".join(e) for e, _ in BAD_ZEROSHOT])
+def test_bad_zeroshot_option_writes_nothing(finished_run, extra, message, capsys):
+    argv = ["zeroshot", str(finished_run), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, *extra]
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
+    assert not (finished_run / "zeroshot").exists()
+
+
+def test_verbose_flag_after_the_subcommand(finished_run, capsys):
+    argv = ["zeroshot", str(finished_run), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "-v",
+            "--overwrite", "--no-progress"]
+    assert main(argv) == 0
+    assert (finished_run / "zeroshot" / "point_mass_maze_reach_top_left.json").is_file()
+
+
+# ---------------------------------------------------------------------------------------------
+# Resume hygiene
+
+
+def test_resume_of_a_finished_run_is_a_no_op(finished_run, capsys):
+    summary = (finished_run / "pretrain_summary.json").read_text()
+    config = (finished_run / "config.json").read_text()
+    assert main(pretrain_argv(finished_run, 1000, "--resume")) == 0
+    assert "already finished at 1000 frames" in capsys.readouterr().err
+    assert (finished_run / "pretrain_summary.json").read_text() == summary
+    assert (finished_run / "config.json").read_text() == config
+
+
+def test_failed_resume_changes_no_file(finished_run, tmp_path, capsys):
+    run = tmp_path / "copy"
+    import shutil
+
+    shutil.copytree(finished_run, run)
+    checkpoint = latest_checkpoint(run)
+    checkpoint.write_bytes(os.urandom(2048))  # unreadable
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    assert main(pretrain_argv(run, 2000, "--resume")) == 2
+    err = capsys.readouterr().err
+    assert "cannot resume" in err and "truncated or corrupt" in err
+    after = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    assert after == before  # config.json still says 1000 frames; nothing else written
+
+
+def test_orphaned_checkpoint_is_removed_on_the_next_start(finished_run, tmp_path):
+    import shutil
+
+    run = tmp_path / "orphan"
+    shutil.copytree(finished_run, run)
+    orphan = run / "checkpoints" / "resume_500.pt"
+    save_checkpoint(run, {"step": 1}, "resume_999", keep_previous=True)  # a kill between move and cleanup
+    orphan.write_bytes(b"left behind")
+    save_checkpoint(run, {"step": 0}, "keep")  # noqa: the pointer moves on; resume_999 becomes an orphan too
+    (run / "checkpoints" / "latest").write_text(f"{latest_checkpoint(finished_run).name}\n")
+    shutil.copy(latest_checkpoint(finished_run), run / "checkpoints" / latest_checkpoint(finished_run).name)
+    assert main(pretrain_argv(run, 2000, "--resume")) == 0
+    names = sorted(p.name for p in (run / "checkpoints").glob("*.pt"))
+    assert names == ["resume_2000.pt"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Signals and the lock (real processes)
+
+
+def _spawn(argv: list[str], **env) -> subprocess.Popen:
+    return subprocess.Popen([*DVFB, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1", **env})
+
+
+def _wait_for(path: Path, process: subprocess.Popen, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not path.exists():
+        if process.poll() is not None:
+            raise AssertionError(f"process ended early: {process.communicate()}")
+        if time.monotonic() > deadline:
+            process.kill()
+            raise AssertionError(f"{path} did not appear in {timeout} s")
+        time.sleep(0.05)
+
+
+def _snapshot_modules(run: Path, frames: int) -> dict:
+    return load_snapshot(RunDir(run), f"snapshot_{frames}")["modules"]
+
+
+def test_sigterm_checkpoints_and_resume_equals_uninterrupted(tmp_path):
+    full, split = tmp_path / "full", tmp_path / "split"
+    assert main(pretrain_argv(full, 2000)) == 0
+    process = _spawn(pretrain_argv(split, 2000))
+    # Once metrics are written the loop is running (updates start at 500 frames).
+    _wait_for(split / "metrics" / "train.jsonl", process)
+    process.send_signal(signal.SIGTERM)
+    out, err = process.communicate(timeout=120)
+    assert process.returncode == 128 + signal.SIGTERM, err
+    assert "SIGTERM received: pre-training stopped at step" in err and "--resume" in err
+    state = load_checkpoint(split)
+    step = state["step"]
+    assert 750 <= step < 2000
+    assert latest_checkpoint(split).name == f"resume_{step}.pt"
+    assert (state.get("episode_state") is not None) == (step % 1000 != 0)
+    assert not (split / "pretrain_summary.json").exists()
+    resumed = subprocess.run([*DVFB, *pretrain_argv(split, 2000, "--resume")], capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"resuming {split} from step {step}" in resumed.stderr
+    a, b = _snapshot_modules(full, 2000), _snapshot_modules(split, 2000)
+    for key in a:
+        for name, tensor in a[key].items():
+            assert torch.equal(tensor, b[key][name]), (key, name)
+
+
+def test_a_second_writer_is_refused_with_the_holders_pid(tmp_path):
+    run = tmp_path / "locked"
+    first = _spawn(pretrain_argv(run, 100_000))
+    _wait_for(run / "metrics" / "train.jsonl", first)
+    second = subprocess.run([*DVFB, *pretrain_argv(run, 1000, "--overwrite")], capture_output=True, text=True)
+    assert second.returncode == 2
+    assert f"is in use by process {first.pid}" in second.stderr
+    assert first.poll() is None  # the live run was not deleted under it
+    first.send_signal(signal.SIGINT)
+    _out, err = first.communicate(timeout=120)
+    assert first.returncode == 128 + signal.SIGINT, err
+    # The OS released the lock with the process: the next writer takes it over.
+    third = subprocess.run([*DVFB, *pretrain_argv(run, 1000, "--overwrite")], capture_output=True, text=True)
+    assert third.returncode == 0, third.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# Disk errors (a real tmpfs)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=500k", "tmpfs", str(mount)], capture_output=True,
+                          text=True)
+    if done.returncode != 0:
+        pytest.fail(f"the disk-error tests need a small tmpfs (run as root): mount said {done.stderr.strip()}")
+    yield mount
+    subprocess.run(["umount", "-l", str(mount)], check=True)
+
+
+def test_full_disk_during_a_checkpoint_is_one_line_and_keeps_the_previous_one(small_disk, capsys):
+    run = small_disk / "run"
+    # The first checkpoint (step 1000, small replay) fits; the one at 2000 does not.
+    code = main(pretrain_argv(run, 3000, "--replay-capacity", "3000"))
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert code == 2 and "No space left on device" in err, err
+    assert "resume checkpoint of step 1000 is intact" in err or "checkpoint" in err
+    assert load_checkpoint(run)["step"] == 1000
+    assert not any(p.name.startswith(".") and ".tmp-" in p.name for p in (run / "checkpoints").iterdir())
+
+
+def test_read_only_run_fails_before_the_work(finished_run, small_disk, capsys):
+    import shutil
+
+    run = small_disk / "ro"
+    shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns("checkpoints", "zeroshot", "tb", "metrics"))
+    subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], check=True)
+    started = time.monotonic()
+    argv = ["zeroshot", str(run), "--task", "point_mass_maze_reach_top_left", "--inference.steps", "5000",
+            "--inference.samples", "5000", "--inference.eval-episodes", "3"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "cannot write in" in err and "Read-only file system" in err
+    assert time.monotonic() - started < 30  # refused before 8,000 steps of work, not after
+    assert main(pretrain_argv(run, 2000, "--resume")) == 2
+    assert "Read-only file system" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# Numerics and progress
+
+
+def test_singular_covariance_names_the_step_and_the_ridge_option():
+    """One output of B is 0 for every state, so Cov(B) has a zero row: the implicit reward is not
+    finite, and the read-back names the update's step and the ridge option."""
+    torch.manual_seed(0)
+    agent = FBAgent(OBS, ACT, tiny_config())
+    last = agent.backward_map.net[-1]
+    with torch.no_grad():
+        last.weight[0].zero_()
+        last.bias[0].zero_()
+    g = torch.Generator().manual_seed(0)
+    n = 32
+    obs, next_obs = torch.randn(n, OBS, generator=g), torch.randn(n, OBS, generator=g)
+    batch = Batch(obs, torch.zeros(n, ACT), torch.zeros(n, 1), torch.full((n, 1), 0.99), next_obs, next_obs, None)
+    window = MetricWindow()
+    window.add(4321, agent.update(batch))
+    with pytest.raises(NonFiniteLossError, match=r"at step 4321.*Cov\(B\) is singular.*--fb.cov-ridge"):
+        window.flush()
+
+
+def test_progress_lines_without_a_terminal(tmp_path):
+    run = tmp_path / "progress"
+    done = subprocess.run([*DVFB, *[a for a in pretrain_argv(run, 1500) if a != "--no-progress"]],
+                          capture_output=True, text=True, env={**os.environ, "DVFB_PROGRESS_SECONDS": "0"})
+    assert done.returncode == 0, done.stderr
+    lines = [line for line in done.stderr.splitlines() if line.startswith("[pretrain fb point_mass_maze] ")]
+    progress = [line for line in lines if "frames (" in line]
+    assert progress and "frames/s, ETA" in progress[-1] and "1500/1500 frames (100%)" in progress[-1]
+    assert any("memory estimate: replay" in line for line in lines)
+    assert json.loads((run / "pretrain_summary.json").read_text())["frames"] == 1500
