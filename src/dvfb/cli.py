@@ -243,6 +243,20 @@ def cmd_random_policy(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """A grid of runs through pre-train -> zero-shot -> fine-tune -> report (dvfb.sweep)."""
+    from dvfb.sweep.cli import run_from_args
+
+    return run_from_args(args)
+
+
+def cmd_sweep_status(args: argparse.Namespace) -> int:
+    """The table of a sweep's cells: done / running / queued / failed, frames and ETA."""
+    from dvfb.sweep.cli import status_from_args
+
+    return status_from_args(args)
+
+
 # ---------------------------------------------------------------------------------------------
 # Reports and analyses (dvfb.analysis)
 
@@ -418,6 +432,28 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
     p.add_argument("--gif-steps", type=int, default=400, help="steps in the GIF (default: %(default)s)")
     progress_flag(p)
     p.set_defaults(func=cmd_demo)
+
+    from dvfb.sweep.cli import add_run_arguments as add_sweep_run_arguments
+
+    p = sub.add_parser("sweep", help="methods x domains x seeds: pre-train -> zero-shot -> fine-tune -> report",
+                       formatter_class=_Formatter,
+                       description="Sweeps (README 'Sweeps', docs/sweeps.md): `dvfb sweep run FILE` runs a grid "
+                                   "locally (default), on SLURM or in-process, resumably; `dvfb sweep status DIR` "
+                                   "prints its cells.")
+    sweep_sub = p.add_subparsers(dest="sweep_command", required=True, metavar="ACTION")
+    q = sweep_sub.add_parser("run", help="run or continue a sweep", formatter_class=_Formatter,
+                             description="Run every phase of every cell that is not done yet: finished cells "
+                                         "are skipped, interrupted ones resume from their checkpoints, failed "
+                                         "ones are reported with their log and do not stop the others. Exit "
+                                         "status 1 when a unit failed.")
+    add_sweep_run_arguments(q)
+    q.set_defaults(func=cmd_sweep)
+    q = sweep_sub.add_parser("status", help="table of the cells of a sweep",
+                             description="Each cell's state (done / running / queued / failed / stopped), "
+                                         "pre-training frames, ETA of a running pre-training, and the reason "
+                                         "and log of a failure.")
+    q.add_argument("dir", help="sweep directory")
+    q.set_defaults(func=cmd_sweep_status)
 
     p = sub.add_parser(
         "report", help="Table 1 (zero-shot), Table 2 (fine-tuning) and fine-tuning curves",

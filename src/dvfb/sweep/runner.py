@@ -1,0 +1,182 @@
+"""Starting or continuing a sweep, its reports, and ``dvfb sweep status`` (README "Sweeps",
+docs/sweeps.md)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import socket
+import time
+from pathlib import Path
+
+from dvfb.errors import ConfigError
+from dvfb.runs import read_json, write_json_atomic
+from dvfb.sweep import spec
+from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, alive_jobs
+from dvfb.sweep.spec import Cell, SweepConfig
+from dvfb.sweep.units import SweepDir, is_done, pretrain_target, read_state, units_of
+
+
+def prepare(path: Path, requested: SweepConfig) -> SweepDir:
+    """Save a new sweep into ``path``, or check that ``path`` holds the same sweep (a re-run).
+
+    A different grid in an existing sweep directory is an error and changes nothing.
+    """
+    sweep = SweepDir(path)
+    if sweep.config_path.exists():
+        stored = spec.load_stored(path)
+        differ = spec.same_grid(stored, requested)
+        if differ:
+            raise ConfigError(f"{path} holds another sweep ({', '.join(differ)} differ from {sweep.config_path}); "
+                              "choose another --dir, or repeat the original command to continue it")
+    elif path.exists() and any(path.iterdir()):
+        raise ConfigError(f"{path} exists and is not a sweep directory (no {spec.SWEEP_FILE}); choose another --dir")
+    write_json_atomic(sweep.config_path, spec.to_dict(requested))
+    return sweep
+
+
+def run(path: Path, config: SweepConfig) -> Outcome:
+    """Run every unit of the sweep that is not done yet, then write the reports."""
+    sweep = prepare(path, config)
+    outcome = EXECUTORS[config.executor](sweep, config)
+    if config.report:
+        write_reports(sweep, config)
+    return outcome
+
+
+def report_groups(config: SweepConfig) -> dict[str, list[Cell]]:
+    """The cells of each report: one report per combination of swept values (a method without
+    a swept option is in every report), all cells in one report when nothing is swept."""
+    cells = spec.cells(config)
+    axes = [k for k, values in config.overrides.items() if len(values) > 1]
+    if not axes:
+        return {"": cells}
+    groups = {}
+    for combination in itertools.product(*(config.overrides[k] for k in axes)):
+        chosen = dict(zip(axes, combination))
+        name = "_".join(f"{k}={spec.format_value(v)}" for k, v in chosen.items())
+        groups[name] = [c for c in cells
+                        if all(json.dumps(dict(c.values)[k]) == json.dumps(v) for k, v in chosen.items() if k in c.axes)]
+    return groups
+
+
+def write_reports(sweep: SweepDir, config: SweepConfig) -> list[Path]:
+    """``dvfb report`` over the seeds of each group (:func:`report_groups`) into SWEEP/report/.
+    The report is derived from the runs, so it is rewritten on every run of the sweep."""
+    from dvfb.analysis.common import AnalysisError
+    from dvfb.analysis.report import make_report
+
+    written = []
+    for name, cells in report_groups(config).items():
+        runs = [sweep.run_path(c) for c in cells if sweep.run_path(c).is_dir()]
+        if not runs:
+            continue
+        out = sweep.report_dir / name if name else sweep.report_dir
+        try:
+            report = make_report(runs, out, overwrite=True)
+        except AnalysisError as exc:  # no results yet (every cell failed): nothing to report
+            print(f"[sweep] no report for {name or 'the sweep'}: {exc}")
+            continue
+        written.append(report.out_dir / "report.md")
+        print(f"[sweep] report: {report.out_dir / 'report.md'}")
+    return written
+
+
+# ---------------------------------------------------------------------------------------------
+# status
+
+
+def _last_train_record(run: Path) -> dict:
+    metrics = run / "metrics" / "train.jsonl"
+    try:
+        lines = metrics.read_text(encoding="utf-8").strip().splitlines()
+        return json.loads(lines[-1]) if lines else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def _alive(state: dict, jobs: dict[str, str] | None) -> str | None:
+    """'running' or 'queued' when the unit's process or job is alive, else None."""
+    job = state.get("job_id")
+    if job and jobs is not None:
+        squeue_state = jobs.get(job)
+        return None if squeue_state is None else ("running" if squeue_state == "RUNNING" else "queued")
+    if state.get("host") == socket.gethostname() and state.get("pid"):
+        try:
+            os.kill(int(state["pid"]), 0)
+        except (ProcessLookupError, PermissionError):
+            return None
+        return "running"
+    return None
+
+
+def _format_seconds(seconds: float) -> str:
+    seconds = int(seconds)
+    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+
+
+def cell_status(sweep: SweepDir, config: SweepConfig, cell: Cell, jobs: dict[str, str] | None,
+                recorded: dict[str, str]) -> dict:
+    """State (done / running / queued / failed / stopped), frames, ETA and a note of one cell."""
+    units = units_of(config, cell)
+    states = {u.name: read_state(sweep, u) or {} for u in units}
+    done = [is_done(sweep, config, u) for u in units]
+    target = pretrain_target(config, cell)
+    record = _last_train_record(sweep.run_path(cell))
+    frames = target if done[0] else int(record.get("step", 0))
+    live = {u.name: _alive(states[u.name], jobs) for u in units if states[u.name].get("state") == "running"}
+    queued = [u for u in units if jobs is not None and recorded.get(u.key) in jobs
+              and jobs[recorded[u.key]] != "RUNNING" and not is_done(sweep, config, u)]
+    failed = [u for u, d in zip(units, done) if not d and states[u.name].get("state") == "failed"]
+    eta = ""
+    if all(done):
+        state, note = "done", ""
+    elif "running" in live.values():
+        state = "running"
+        running = [name for name, alive in live.items() if alive == "running"]
+        note = ", ".join(running)
+        fps = record.get("fps")
+        if "pretrain" in running and fps:
+            eta = _format_seconds((target - frames) / fps)
+    elif failed:
+        state = "failed"
+        first = states[failed[0].name]
+        note = f"{failed[0].name}: {first.get('reason')} (log: {first.get('log')})"
+    elif queued or "queued" in live.values() or not any(s.get("attempts") for s in states.values()):
+        state, note = "queued", ""
+    else:
+        state = "stopped"
+        note = "interrupted; run the sweep command again to continue"
+    phases = f"{sum(done)}/{len(units)}"
+    return {"cell": cell.name, "state": state, "frames": frames, "target": target, "eta": eta,
+            "units_done": phases, "note": note}
+
+
+def status(path: Path) -> tuple[list[dict], str | None]:
+    """One row per cell (:func:`cell_status`), and a warning when SLURM jobs cannot be looked up."""
+    sweep = SweepDir(path)
+    if not sweep.config_path.is_file():
+        raise ConfigError(f"{path} is not a sweep directory (no {spec.SWEEP_FILE})")
+    config = spec.load_stored(path)
+    recorded = read_json(sweep.jobs_path) if sweep.jobs_path.is_file() else {}
+    jobs, warning = None, None
+    if recorded:
+        try:
+            jobs = alive_jobs()
+        except SlurmError as exc:
+            # The files still tell what is done and what failed; only queued/running is unknown.
+            warning = f"squeue cannot be asked, so queued and running jobs are not shown: {exc}"
+    return [cell_status(sweep, config, cell, jobs, recorded) for cell in spec.cells(config)], warning
+
+
+def format_status(rows: list[dict]) -> str:
+    header = ("cell", "state", "frames", "ETA", "units done", "note")
+    table = [(r["cell"], r["state"], f"{r['frames']}/{r['target']}", r["eta"] or "-", r["units_done"], r["note"])
+             for r in rows]
+    widths = [max(len(str(row[i])) for row in [header, *table]) for i in range(len(header) - 1)]
+    lines = ["  ".join(str(c).ljust(w) for c, w in zip(row[:-1], widths)) + "  " + row[-1] for row in [header, *table]]
+    counts = {s: sum(r["state"] == s for r in rows) for s in ("done", "running", "queued", "failed", "stopped")}
+    lines.append(", ".join(f"{n} {s}" for s, n in counts.items() if n) + f" ({len(rows)} cells, "
+                 f"{time.strftime('%H:%M:%S')})")
+    return "\n".join(line.rstrip() for line in lines)

@@ -1,0 +1,385 @@
+"""The sweep description and its cells (README "Sweeps", docs/sweeps.md).
+
+A sweep is one :class:`SweepConfig`: methods x domains x seeds, the phases to run, and
+``overrides``, the pre-training config flags of every cell. An override with one value applies to
+every cell of a method that has the option; one with several values is a grid axis, e.g.
+``{"exploration.alpha": [1, 5, 50]}`` (on the command line ``--exploration.alpha 1,5,50``).
+An axis applies only to the methods that have its section: FB cells do not multiply over
+``exploration.alpha``.
+
+Each combination is a :class:`Cell`, named from its values
+(``dvfb_walker_exploration.alpha=5.0_s0``) and run in ``SWEEP/runs/<name>/``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import re
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dvfb.config import from_dict, merge, param, to_dict
+from dvfb.errors import ConfigError
+
+PHASES = ("pretrain", "zeroshot", "finetune")
+EXECUTORS = ("local", "slurm", "debug")
+# Pre-training fields that the sweep sets per cell (agents, domains, seeds, preset) or per
+# executor (torch threads), so they are not overrides.
+CELL_FIELDS = ("agent", "domain", "seed", "preset", "torch_threads")
+# The fields that define what a sweep computes; a re-run into the same directory must match them.
+# Executor fields may change between runs (start locally, continue on SLURM).
+GRID_FIELDS = ("agents", "domains", "seeds", "preset", "phases", "zeroshot_tasks", "finetune_tasks", "overrides")
+SWEEP_FILE = "sweep.json"
+
+
+@dataclass
+class Resources:
+    """What one SLURM job of a phase asks for."""
+
+    cpus: int = param(1, "CPUs per job (--cpus-per-task); the phase runs torch with this many threads.")
+    gpus: int = param(0, "GPUs per job (--gpus-per-node); with --device auto (the default) the phase uses CUDA.")
+    mem_gb: float = param(4.0, "Memory per job in GB (--mem).")
+    time_min: int = param(1440, "Time limit in minutes (--time). Before it, the job gets USR2, stops its phase "
+                                "and requeues itself; the phase resumes from its checkpoint.")
+
+
+@dataclass
+class SlurmConfig:
+    """The slurm executor: job arrays through submitit, one array per phase."""
+
+    partition: str | None = param(None, "Partition (--partition); none: the cluster's default.")
+    account: str | None = param(None, "Account (--account).")
+    qos: str | None = param(None, "Quality of service (--qos).")
+    array_parallelism: int = param(32, "Jobs of one array that run at once (the limit of sbatch --array).")
+    extra_sbatch: list[str] = param([], "Further #SBATCH options, e.g. --constraint=a100 --exclude=node7.")
+    setup: list[str] = param([], "Shell lines run in each job before the phase (module load ..., source ...).")
+    python: str | None = param(None, "Python interpreter on the compute nodes; none: the one running dvfb sweep.")
+    signal_delay_s: int = param(120, "Seconds before the time limit at which SLURM sends USR2.")
+    max_requeues: int = param(10, "Times a job may requeue itself after a time-out.")
+    poll_s: float = param(10.0, "Seconds between two looks at squeue while the sweep runs.")
+    pretrain: Resources = field(default_factory=lambda: Resources(cpus=1, mem_gb=8.0, time_min=1440),
+                                metadata={"help": "Resources of a pre-training job."})
+    zeroshot: Resources = field(default_factory=lambda: Resources(cpus=1, mem_gb=4.0, time_min=240),
+                                metadata={"help": "Resources of a zero-shot job (every task of the cell)."})
+    finetune: Resources = field(default_factory=lambda: Resources(cpus=1, mem_gb=8.0, time_min=1440),
+                                metadata={"help": "Resources of a fine-tuning job (one task)."})
+
+
+@dataclass
+class SweepConfig:
+    """A sweep: the grid, the phases, and how it is executed."""
+
+    agents: list[str] = param(["dvfb", "fb"], "Methods (dvfb agents).")
+    domains: list[str] = param(["walker"], "Domains (dvfb tasks).")
+    seeds: list[int] = param([0, 1, 2], "Seeds.")
+    preset: str = param("small", "Base configuration of every cell.", ("small", "paper", "code"))
+    phases: list[str] = param(["pretrain", "zeroshot"], "Phases: pretrain, zeroshot, finetune (pretrain always).")
+    zeroshot_tasks: list[str] = param(["all"], "Zero-shot tasks; all = every task of the cell's domain.")
+    finetune_tasks: list[str] = param([], "Fine-tuning tasks (all = every task of the domain).")
+    overrides: dict[str, list] = param({}, "Pre-training config options of the cells, as lists of values; "
+                                           "several values make a grid axis.")
+    executor: str = param("local", "Where phases run: local worker processes, slurm jobs, or debug "
+                                   "(in this process, one after the other).", EXECUTORS)
+    workers: int = param(0, "local: phases that run at once; 0 = the number of cores.")
+    torch_threads: int = param(0, "torch threads per phase; 0 = cores / workers (local), the job's CPUs (slurm), "
+                                  "torch's default (debug).")
+    report: bool = param(True, "Write SWEEP/report (dvfb report, ± over seeds) when every cell is done.")
+    slurm: SlurmConfig = field(default_factory=SlurmConfig, metadata={"help": "The slurm executor."})
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One point of the grid: a method on a domain with a seed and its override values."""
+
+    name: str
+    agent: str
+    domain: str
+    seed: int
+    values: tuple[tuple[str, Any], ...]  # every override that applies to the method
+    axes: tuple[str, ...]  # the keys of ``values`` that are swept (part of the name)
+
+    def overrides(self) -> dict:
+        """The override values as the nested dict that :func:`dvfb.config.merge` takes."""
+        nested: dict = {}
+        for key, value in self.values:
+            *sections, name = key.split(".")
+            target = nested
+            for section in sections:
+                target = target.setdefault(section, {})
+            target[name] = value
+        return nested
+
+
+# ---------------------------------------------------------------------------------------------
+# option keys and values
+
+
+def canonical_key(key: str) -> str:
+    """``fb.hidden-dim`` -> ``fb.hidden_dim`` (config field names never contain dashes)."""
+    return key.strip().lstrip("-").replace("-", "_")
+
+
+def flag_of(key: str) -> str:
+    """The ``dvfb pretrain`` flag of a dotted field name: sections keep their underscores
+    (``--icm_apt.rep-dim``), the field name gets dashes."""
+    *sections, name = key.split(".")
+    return "--" + ".".join([*sections, name.replace("_", "-")])
+
+
+def field_type(cls: type, key: str) -> Any | None:
+    """The declared type of the dotted field ``key`` of the config class ``cls``; None if absent."""
+    tp: Any = cls
+    for part in key.split("."):
+        if not (isinstance(tp, type) and dataclasses.is_dataclass(tp)):
+            return None
+        hints = typing.get_type_hints(tp)
+        if part not in hints or part not in {f.name for f in dataclasses.fields(tp)}:
+            return None
+        tp = hints[part]
+    return tp
+
+
+def _strip_optional(tp: Any) -> tuple[Any, bool]:
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        return [a for a in typing.get_args(tp) if a is not type(None)][0], True
+    return tp, False
+
+
+def is_list_type(tp: Any) -> bool:
+    return typing.get_origin(_strip_optional(tp)[0]) in (list, tuple)
+
+
+def parse_text(key: str, tp: Any, text: str) -> Any:
+    """A command-line value of the option ``key`` as its declared type (as ``dvfb pretrain`` parses it)."""
+    base, optional = _strip_optional(tp)
+    text = text.strip()
+    if optional and text.lower() in ("none", "null"):
+        return None
+    if typing.get_origin(base) in (list, tuple):
+        inner = typing.get_args(base)[0]
+        return [parse_text(key, inner, item) for item in text.split(",") if item.strip()]
+    try:
+        if base is bool:
+            lowered = text.lower()
+            if lowered not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+                raise ValueError(text)
+            return lowered in ("1", "true", "yes", "on")
+        if base in (int, float, str):
+            return base(text)
+    except ValueError:
+        raise ConfigError(f"{flag_of(key)}: {text!r} is not a valid {getattr(base, '__name__', base)}") from None
+    return text
+
+
+def format_value(value: Any) -> str:
+    """The command-line text of a typed value; :func:`parse_text` reads it back exactly."""
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return ",".join(format_value(v) for v in value)
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def _name_part(value: Any) -> str:
+    # One safe path component: keep what shells and file systems take as is.
+    return re.sub(r"[^A-Za-z0-9_.+\-]", "-", format_value(value).replace(",", "-"))
+
+
+# ---------------------------------------------------------------------------------------------
+# building and checking a sweep
+
+
+def _run_config_class(agent: str) -> type:
+    from dvfb.agents import agent_names
+    from dvfb.workflows.config import run_config_class
+
+    if agent not in agent_names():
+        raise ConfigError(f"unknown agent {agent!r}; choose from {', '.join(agent_names())}")
+    return run_config_class(agent)
+
+
+def normalise_overrides(config: SweepConfig, raw: dict[str, Any], from_text: bool) -> dict[str, list]:
+    """Overrides as ``{dotted key: [values]}`` with typed values.
+
+    ``raw`` comes from a file (typed values; a list is an axis, except for list-typed options,
+    where a list of lists is) or from the command line (``from_text``: comma-separated text, an
+    axis unless the option is list-typed).
+    """
+    classes = [_run_config_class(agent) for agent in config.agents]
+    out: dict[str, list] = {}
+    for given_key, value in raw.items():
+        key = canonical_key(given_key)
+        if key.split(".")[0] in CELL_FIELDS:
+            raise ConfigError(f"{flag_of(key)} is set by the sweep itself; use its agents, domains, seeds, "
+                              "preset or torch_threads")
+        tp = next((t for t in (field_type(c, key) for c in classes) if t is not None), None)
+        if tp is None:
+            raise ConfigError(f"no method of the sweep ({', '.join(config.agents)}) has the option {flag_of(key)}")
+        if from_text:
+            texts = [str(value)] if is_list_type(tp) else str(value).split(",")
+            values = [parse_text(key, tp, text) for text in texts]
+        elif is_list_type(tp):
+            values = list(value) if value and all(isinstance(v, list) for v in value) else [value]
+        else:
+            values = list(value) if isinstance(value, list) else [value]
+        if not values:
+            raise ConfigError(f"{flag_of(key)} has no value")
+        if len({json.dumps(v) for v in values}) != len(values):
+            raise ConfigError(f"{flag_of(key)} lists a value twice: {values}")
+        out[key] = values
+    return out
+
+
+def _tasks(config: SweepConfig, domain: str, requested: list[str]) -> list[str]:
+    from dvfb import envs
+
+    if requested == ["all"]:
+        return list(envs.tasks_of_domain(domain))
+    return [t for t in requested if t in envs.tasks_of_domain(domain)]
+
+
+def zeroshot_tasks(config: SweepConfig, cell: Cell) -> list[str]:
+    return _tasks(config, cell.domain, config.zeroshot_tasks) if "zeroshot" in config.phases else []
+
+
+def finetune_tasks(config: SweepConfig, cell: Cell) -> list[str]:
+    return _tasks(config, cell.domain, config.finetune_tasks) if "finetune" in config.phases else []
+
+
+def check(config: SweepConfig) -> None:
+    """Everything about a sweep that can be checked before anything runs (bad input: ConfigError)."""
+    from dvfb import envs
+
+    for name, values in (("agents", config.agents), ("domains", config.domains), ("seeds", config.seeds)):
+        if not values:
+            raise ConfigError(f"the sweep has no {name}")
+        if len(set(values)) != len(values):
+            raise ConfigError(f"{name} lists a value twice: {values}")
+    for agent in config.agents:
+        _run_config_class(agent)
+    for domain in config.domains:
+        if domain not in envs.DOMAINS:
+            raise ConfigError(f"unknown domain {domain!r}; choose one of {', '.join(envs.DOMAINS)}")
+    unknown = [p for p in config.phases if p not in PHASES]
+    if unknown:
+        raise ConfigError(f"unknown phase(s) {', '.join(unknown)}; choose from {', '.join(PHASES)}")
+    if "pretrain" not in config.phases:
+        raise ConfigError("the phases must include pretrain (zero-shot and fine-tuning start from it)")
+    all_tasks = {t for d in config.domains for t in envs.tasks_of_domain(d)}
+    for what, tasks in (("zeroshot_tasks", config.zeroshot_tasks), ("finetune_tasks", config.finetune_tasks)):
+        if tasks == ["all"]:
+            continue
+        stray = [t for t in tasks if t not in all_tasks]
+        if stray:
+            raise ConfigError(f"{what}: {', '.join(stray)} is not a task of {', '.join(config.domains)} (dvfb tasks)")
+    if "finetune" in config.phases and not config.finetune_tasks:
+        raise ConfigError("the finetune phase needs finetune_tasks (--finetune-tasks TASK ...)")
+    if config.workers < 0 or config.torch_threads < 0:
+        raise ConfigError("workers and torch_threads must be >= 0")
+    if config.slurm.array_parallelism < 1:
+        raise ConfigError("slurm.array_parallelism must be >= 1")
+    names = [cell.name for cell in cells(config)]
+    if len(set(names)) != len(names):
+        raise ConfigError("two cells of the sweep get the same name; give the swept values distinct texts")
+    for cell in cells(config):
+        cell_config(config, cell)  # every cell's config must be valid
+
+
+def cells(config: SweepConfig) -> list[Cell]:
+    """The grid, in the order agents, domains, swept values, seeds."""
+    out = []
+    for agent in config.agents:
+        cls = _run_config_class(agent)
+        keys = [k for k in config.overrides if field_type(cls, k) is not None]
+        axes = tuple(k for k in keys if len(config.overrides[k]) > 1)
+        for domain in config.domains:
+            for combination in itertools.product(*(config.overrides[k] for k in keys)):
+                values = tuple(zip(keys, combination))
+                swept = "".join(f"_{k}={_name_part(v)}" for k, v in values if k in axes)
+                for seed in config.seeds:
+                    out.append(Cell(f"{agent}_{domain}{swept}_s{seed}", agent, domain, seed, values, axes))
+    return out
+
+
+def cell_config(config: SweepConfig, cell: Cell):
+    """The cell's full pre-training config (what ``dvfb pretrain`` would resolve)."""
+    from dvfb.workflows.config import preset_config
+
+    base = preset_config(config.preset, cell.agent, domain=cell.domain, seed=cell.seed)
+    try:
+        return merge(base, cell.overrides())
+    except ConfigError as exc:
+        raise ConfigError(f"cell {cell.name}: {exc}") from exc
+
+
+def pretrain_flags(cell: Cell) -> list[str]:
+    """The override flags of the cell for ``dvfb pretrain``."""
+    flags: list[str] = []
+    for key, value in cell.values:
+        flags += [flag_of(key), format_value(value)]
+    return flags
+
+
+# ---------------------------------------------------------------------------------------------
+# reading and saving
+
+
+def read_file(path: Path) -> dict:
+    """The contents of a sweep file (``.toml`` or ``.json``)."""
+    if not path.is_file():
+        raise ConfigError(f"sweep file {path} does not exist")
+    try:
+        if path.suffix == ".toml":
+            return tomllib.loads(path.read_text(encoding="utf-8"))
+        if path.suffix == ".json":
+            return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ConfigError(f"sweep file {path} cannot be read: {exc}") from exc
+    raise ConfigError(f"sweep file {path}: expected a .toml or .json file")
+
+
+def build(base: dict, file_data: dict, flag_data: dict, flag_overrides: dict[str, str]) -> SweepConfig:
+    """Defaults <- ``base`` (a stored sweep) <- a sweep file <- command-line flags, checked.
+
+    ``flag_overrides`` are the config flags typed on the command line (text values).
+    """
+    file_data = dict(file_data)
+    raw_file_overrides = file_data.pop("overrides", {})
+    if not isinstance(raw_file_overrides, dict):
+        raise ConfigError("overrides must be a table of option = value(s)")
+    data = to_dict(SweepConfig())
+    for layer in (base, file_data, flag_data):
+        config = merge(from_dict(SweepConfig, data), layer)
+        data = to_dict(config)
+    config = from_dict(SweepConfig, data)
+    overrides = dict(config.overrides)  # stored (canonical) overrides of ``base``
+    overrides.update(normalise_overrides(config, raw_file_overrides, from_text=False))
+    overrides.update(normalise_overrides(config, flag_overrides, from_text=True))
+    config = dataclasses.replace(config, overrides=overrides)
+    check(config)
+    return config
+
+
+def same_grid(a: SweepConfig, b: SweepConfig) -> list[str]:
+    """The grid fields in which two sweeps differ."""
+    da, db = to_dict(a), to_dict(b)
+    return [k for k in GRID_FIELDS if json.dumps(da[k], sort_keys=True) != json.dumps(db[k], sort_keys=True)]
+
+
+def load_stored(path: Path) -> SweepConfig:
+    """The sweep saved in a sweep directory."""
+    from dvfb.runs import read_json
+
+    data = read_json(path / SWEEP_FILE, error=ConfigError)
+    try:
+        return from_dict(SweepConfig, data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path / SWEEP_FILE}: {exc}") from exc

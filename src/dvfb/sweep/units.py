@@ -1,0 +1,320 @@
+"""One phase of one cell, a *unit*: when it is done, the ``dvfb`` command that runs or resumes it,
+and the record of its attempts (README "Sweeps", docs/sweeps.md).
+
+Units: ``pretrain``, ``zeroshot`` (every zero-shot task of the cell, one command) and
+``finetune-<task>``. A unit runs the ``dvfb`` command line, so a sweep computes exactly what the
+commands of the README compute, and resumes the way a user would:
+
+* pre-training is done when ``pretrain_summary.json`` reports the cell's frames; otherwise it
+  continues with ``--resume`` from the latest checkpoint, or starts over (``--overwrite``) when it
+  was stopped before its first checkpoint;
+* zero-shot is done when ``zeroshot/<task>.json`` exists for every task; only missing tasks run;
+* fine-tuning is done when ``finetune/<task>/finetune_summary.json`` exists, else it resumes or
+  starts like pre-training.
+
+A finished unit is never run again, so a re-run rewrites nothing in a finished run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import io
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from dvfb.errors import DvfbError
+from dvfb.runs import latest_checkpoint, read_json, write_json_atomic
+from dvfb.sweep import spec
+from dvfb.sweep.spec import Cell, SweepConfig
+
+# Exit statuses of a phase stopped by a signal (SIGTERM, SIGINT; as a negative returncode or as
+# the shell's 128 + n): the unit was interrupted (requeue, preemption, kill), not failed.
+_INTERRUPT_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGKILL, signal.SIGHUP)
+# How long an interrupted phase may take to write its checkpoint and exit.
+STOP_GRACE_S = 60.0
+
+
+class UnitFailed(DvfbError):
+    """A unit's command exited with an error (the reason is the last line of its log)."""
+
+
+class UnitInterrupted(DvfbError):
+    """A unit's command was stopped by a signal; a re-run or requeue continues it."""
+
+
+class SweepDir:
+    """The paths of a sweep directory (layout in the dvfb.sweep docstring)."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+
+    @property
+    def config_path(self) -> Path:
+        return self.path / spec.SWEEP_FILE
+
+    @property
+    def runs_dir(self) -> Path:
+        return self.path / "runs"
+
+    @property
+    def slurm_dir(self) -> Path:
+        return self.path / "slurm"
+
+    @property
+    def jobs_path(self) -> Path:
+        return self.path / "jobs.json"
+
+    @property
+    def report_dir(self) -> Path:
+        return self.path / "report"
+
+    def run_path(self, cell: Cell) -> Path:
+        return self.runs_dir / cell.name
+
+    def state_path(self, unit: Unit) -> Path:
+        return self.path / "state" / unit.cell.name / f"{unit.name}.json"
+
+    def log_path(self, unit: Unit) -> Path:
+        return self.path / "logs" / unit.cell.name / f"{unit.name}.log"
+
+
+@dataclass(frozen=True)
+class Unit:
+    cell: Cell
+    phase: str  # pretrain, zeroshot or finetune
+    task: str | None = None  # the fine-tuning task
+
+    @property
+    def name(self) -> str:
+        return self.phase if self.task is None else f"{self.phase}-{self.task}"
+
+    @property
+    def key(self) -> str:
+        return f"{self.cell.name}/{self.name}"
+
+
+def units_of(config: SweepConfig, cell: Cell) -> list[Unit]:
+    """The cell's units; the first is its pre-training, on which the others depend."""
+    units = [Unit(cell, "pretrain")]
+    if spec.zeroshot_tasks(config, cell):
+        units.append(Unit(cell, "zeroshot"))
+    units += [Unit(cell, "finetune", task) for task in spec.finetune_tasks(config, cell)]
+    return units
+
+
+def find_unit(config: SweepConfig, cell_name: str, unit_name: str) -> Unit:
+    for cell in spec.cells(config):
+        if cell.name == cell_name:
+            for unit in units_of(config, cell):
+                if unit.name == unit_name:
+                    return unit
+    raise DvfbError(f"the sweep has no unit {cell_name}/{unit_name}")
+
+
+# ---------------------------------------------------------------------------------------------
+# progress on disk
+
+
+def pretrain_target(config: SweepConfig, cell: Cell) -> int:
+    return spec.cell_config(config, cell).frames
+
+
+def pretrain_done(sweep: SweepDir, config: SweepConfig, cell: Cell) -> bool:
+    summary = sweep.run_path(cell) / "pretrain_summary.json"
+    return summary.is_file() and read_json(summary).get("frames", -1) >= pretrain_target(config, cell)
+
+
+def missing_zeroshot_tasks(sweep: SweepDir, config: SweepConfig, cell: Cell) -> list[str]:
+    run = sweep.run_path(cell)
+    return [t for t in spec.zeroshot_tasks(config, cell) if not (run / "zeroshot" / f"{t}.json").is_file()]
+
+
+def finetune_dir(sweep: SweepDir, cell: Cell, task: str) -> Path:
+    return sweep.run_path(cell) / "finetune" / task
+
+
+def is_done(sweep: SweepDir, config: SweepConfig, unit: Unit) -> bool:
+    if unit.phase == "pretrain":
+        return pretrain_done(sweep, config, unit.cell)
+    if unit.phase == "zeroshot":
+        return not missing_zeroshot_tasks(sweep, config, unit.cell)
+    return (finetune_dir(sweep, unit.cell, unit.task) / "finetune_summary.json").is_file()
+
+
+def _continue_flags(run_dir: Path) -> list[str]:
+    """--resume from the latest checkpoint; --overwrite for a run stopped before its first one
+    (its directory holds nothing that a restart would lose)."""
+    if latest_checkpoint(run_dir) is not None:
+        return ["--resume"]
+    return ["--overwrite"] if run_dir.exists() else []
+
+
+def command(sweep: SweepDir, config: SweepConfig, unit: Unit, torch_threads: int) -> list[str]:
+    """The ``dvfb`` arguments that run (or continue) the unit; the unit must not be done."""
+    cell = unit.cell
+    run = sweep.run_path(cell)
+    if unit.phase == "pretrain":
+        return ["pretrain", "--agent", cell.agent, "--domain", cell.domain, "--seed", str(cell.seed),
+                "--preset", config.preset, "--run-dir", str(run), "--no-progress",
+                "--torch-threads", str(torch_threads), *spec.pretrain_flags(cell), *_continue_flags(run)]
+    if not pretrain_done(sweep, config, cell):
+        raise UnitFailed(f"{unit.key}: the pre-training of {cell.name} has not finished")
+    if unit.phase == "zeroshot":
+        return ["zeroshot", str(run), "--task", *missing_zeroshot_tasks(sweep, config, cell)]
+    return ["finetune", str(run), "--task", unit.task, "--no-progress",
+            *_continue_flags(finetune_dir(sweep, cell, unit.task))]
+
+
+def read_state(sweep: SweepDir, unit: Unit) -> dict | None:
+    path = sweep.state_path(unit)
+    return read_json(path) if path.is_file() else None
+
+
+def _write_state(sweep: SweepDir, unit: Unit, **fields: Any) -> dict:
+    state = read_state(sweep, unit) or {"unit": unit.key, "attempts": 0}
+    state.update(fields)
+    write_json_atomic(sweep.state_path(unit), state)
+    return state
+
+
+def slurm_job_id() -> str | None:
+    """This process's SLURM job as squeue names it (``123_4`` for an array task), if any."""
+    env = os.environ
+    if env.get("SLURM_ARRAY_JOB_ID") and env.get("SLURM_ARRAY_TASK_ID"):
+        return f"{env['SLURM_ARRAY_JOB_ID']}_{env['SLURM_ARRAY_TASK_ID']}"
+    return env.get("SLURM_JOB_ID")
+
+
+# ---------------------------------------------------------------------------------------------
+# running a unit
+
+
+# The phase process of the unit this process runs (one at a time), for stop_current_phase.
+_current_phase: subprocess.Popen | None = None
+
+
+def _die_with_parent() -> None:
+    # Linux: the phase gets SIGTERM when the worker that started it dies, so that a killed
+    # submitter leaves no phase running that a re-run would start a second time.
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def stop_current_phase(grace_s: float = STOP_GRACE_S) -> None:
+    """Send SIGTERM to the running phase and wait for it to exit (it checkpoints on SIGTERM where
+    the workflow supports it; otherwise the next attempt resumes from the last checkpoint)."""
+    child = _current_phase
+    if child is None or child.poll() is not None:
+        return
+    child.send_signal(signal.SIGTERM)
+    try:
+        child.wait(timeout=grace_s)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        child.wait()
+
+
+def _interrupted(returncode: int) -> bool:
+    return any(returncode in (-int(s), 128 + int(s)) for s in _INTERRUPT_SIGNALS)
+
+
+def _exit_reason(log: Path, offset: int, returncode: int) -> str:
+    """The last non-empty line the attempt wrote to its log, and how the process ended."""
+    try:
+        with open(log, "rb") as file:
+            file.seek(offset)
+            lines = [line.strip() for line in file.read().decode("utf-8", "replace").splitlines() if line.strip()]
+    except OSError:
+        lines = []
+    ending = (f"killed by {signal.Signals(-returncode).name}" if returncode < 0 else f"exit status {returncode}")
+    return f"{ending}: {lines[-1]}" if lines else ending
+
+
+def _run_in_process(argv: list[str], log: Path) -> int:
+    """``dvfb ARGV`` in this process (debug executor), its error output copied to the log."""
+    from dvfb.cli import main
+
+    errors = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(errors):
+            code = main(argv)
+    except Exception:  # noqa: BLE001 - recorded as the unit's failure, like a crashed subprocess
+        errors.write(traceback.format_exc())
+        code = 1
+    with open(log, "a", encoding="utf-8") as file:
+        file.write(errors.getvalue())
+    sys.stderr.write(errors.getvalue())
+    return code
+
+
+def _run_subprocess(argv: list[str], log: Path, torch_threads: int) -> int:
+    global _current_phase
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    if torch_threads > 0:
+        # numpy and the BLAS under it get the same share of the cores as torch.
+        for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            env[name] = str(torch_threads)
+    with open(log, "ab") as out:
+        _current_phase = subprocess.Popen([sys.executable, "-m", "dvfb", *argv], stdout=out,
+                                          stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                                          preexec_fn=_die_with_parent)
+        try:
+            return _current_phase.wait()
+        finally:
+            _current_phase = None
+
+
+def run_unit(sweep_path: str, cell_name: str, unit_name: str, torch_threads: int, in_process: bool = False) -> str:
+    """Run (or continue) one unit of the sweep in ``sweep_path``; ``"done"`` or ``"skipped"``
+    (it was done already). Raises UnitFailed or UnitInterrupted with the reason and log path.
+
+    This is what every executor calls, in a worker thread, a SLURM job or this process.
+    """
+    sweep = SweepDir(sweep_path)
+    config = spec.load_stored(sweep.path)
+    unit = find_unit(config, cell_name, unit_name)
+    if is_done(sweep, config, unit):
+        if (read_state(sweep, unit) or {}).get("state") != "done":
+            _write_state(sweep, unit, state="done")
+        return "skipped"
+    log = sweep.log_path(unit)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    argv = command(sweep, config, unit, torch_threads)
+    attempts = (read_state(sweep, unit) or {}).get("attempts", 0) + 1
+    with open(log, "a", encoding="utf-8") as file:
+        file.write(f"\n=== attempt {attempts} on {socket.gethostname()} at {time.strftime('%Y-%m-%d %H:%M:%S')}: "
+                   f"dvfb {' '.join(argv)}\n")
+    offset = log.stat().st_size
+    _write_state(sweep, unit, state="running", attempts=attempts, started=time.time(), ended=None,
+                 exit_code=None, reason=None, log=str(log), host=socket.gethostname(), pid=os.getpid(),
+                 job_id=slurm_job_id(), command=["dvfb", *argv])
+    code = _run_in_process(argv, log) if in_process else _run_subprocess(argv, log, torch_threads)
+    reason = _exit_reason(log, offset, code)
+    if code == 0 and is_done(sweep, config, unit):
+        _write_state(sweep, unit, state="done", ended=time.time(), exit_code=0)
+        return "done"
+    if code == 0:
+        code, reason = 1, f"exit status 0 but the results are missing: {reason}"
+    if _interrupted(code):
+        _write_state(sweep, unit, state="interrupted", ended=time.time(), exit_code=code, reason=reason)
+        raise UnitInterrupted(f"{unit.key} was interrupted ({reason}); log: {log}")
+    _write_state(sweep, unit, state="failed", ended=time.time(), exit_code=code, reason=reason)
+    raise UnitFailed(f"{unit.key} failed ({reason}); log: {log}")
+
+
+def mark_requeued(sweep_path: str, cell_name: str, unit_name: str) -> None:
+    """Record that the unit's job stopped its phase to be requeued (SLURM time-out/preemption)."""
+    sweep = SweepDir(sweep_path)
+    unit = find_unit(spec.load_stored(sweep.path), cell_name, unit_name)
+    _write_state(sweep, unit, state="interrupted", ended=time.time(), reason="requeued by SLURM")

@@ -1,0 +1,265 @@
+"""`dvfb sweep`: the grid and its cells, bad input, and the executors on real runs -- local worker
+processes and a real single-node SLURM cluster (tests/slurm_cluster.py): equal results, a job
+requeued mid-run, a killed submitter, a failing cell."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from dvfb.cli import main
+from dvfb.runs import list_snapshots, load_snapshot
+from dvfb.sweep import spec
+
+from slurm_cluster import slurm_cluster  # noqa: F401 - the session fixture
+
+# Tiny networks and budgets on walker (its tasks give non-zero returns even untrained).
+TINY = ["--seed-frames", "300", "--update-every", "4", "--checkpoint-every", "1000", "--log-every", "200",
+        "--fb.z-dim", "16", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
+        "--fb.batch-size", "64", "--inference.steps", "300", "--inference.random-action-steps", "100",
+        "--inference.samples", "300", "--inference.eval-episodes", "1", "--torch-threads", "1"]
+# DVFB's own section (a sweep refuses an option that none of its methods has).
+TINY_DVFB = ["--exploration.contrastive-hidden-dim", "32", "--exploration.rnd-rep-dim", "16", "--exploration.ce-k", "4"]
+
+
+def sweep_args(sweep_dir: Path, executor: str, *, agents=("dvfb", "fb"), seeds=("0", "1"), frames=600,
+               extra=()) -> list[str]:
+    return ["sweep", "run", "--dir", str(sweep_dir), "--executor", executor, "--agents", *agents,
+            "--domains", "walker", "--seeds", *seeds, "--frames", str(frames), "--slurm.poll-s", "1",
+            "--slurm.zeroshot.time-min", "30", "--slurm.pretrain.time-min", "30", *TINY,
+            *(TINY_DVFB if "dvfb" in agents else ()), *extra]
+
+
+def unit_state(sweep_dir: Path, cell: str, unit: str) -> dict:
+    return json.loads((sweep_dir / "state" / cell / f"{unit}.json").read_text())
+
+
+def assert_same_results(a: Path, b: Path, cell: str) -> None:
+    """Same agent weights at every snapshot and the same zero-shot results (task vector, returns)."""
+    run_a, run_b = a / "runs" / cell, b / "runs" / cell
+    snapshots = list_snapshots(run_a)
+    assert snapshots and snapshots == list_snapshots(run_b)
+    for name in snapshots:
+        state_a, state_b = load_snapshot(run_a, name), load_snapshot(run_b, name)
+        tensors_a = {k: v for k, v in _flatten(state_a) if isinstance(v, torch.Tensor)}
+        tensors_b = dict((k, v) for k, v in _flatten(state_b) if isinstance(v, torch.Tensor))
+        assert tensors_a and tensors_a.keys() == tensors_b.keys()
+        for key in tensors_a:
+            assert torch.equal(tensors_a[key], tensors_b[key]), f"{cell} {name}: {key} differs"
+    results_a = sorted((run_a / "zeroshot").glob("*.json"))
+    assert len(results_a) == 4
+    for file in results_a:
+        ra, rb = json.loads(file.read_text()), json.loads((run_b / "zeroshot" / file.name).read_text())
+        assert (ra["z"], ra["returns"]) == (rb["z"], rb["returns"]), f"{cell} {file.name} differs"
+
+
+def _flatten(state, prefix=""):
+    if isinstance(state, dict):
+        for key, value in state.items():
+            yield from _flatten(value, f"{prefix}{key}/")
+    elif isinstance(state, (list, tuple)):
+        for i, value in enumerate(state):
+            yield from _flatten(value, f"{prefix}{i}/")
+    else:
+        yield prefix, state
+
+
+def wait_until(condition, what: str, limit_s: float = 600.0, poll_s: float = 0.5) -> None:
+    deadline = time.monotonic() + limit_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"gave up waiting for {what}")
+        time.sleep(poll_s)
+
+
+def sweep_jobs(sweep_dir: Path) -> dict[str, str]:
+    path = sweep_dir / "jobs.json"
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def squeue_ids() -> set[str]:
+    out = subprocess.run(["squeue", "-h", "-r", "-o", "%i"], capture_output=True, text=True, check=True).stdout
+    return set(out.split())
+
+
+# ---------------------------------------------------------------------------------------------
+# the grid, without running anything
+
+
+def test_cells_named_from_their_values_and_axes_apply_to_methods_that_have_them():
+    config = spec.build({}, {"agents": ["dvfb", "fb"], "domains": ["walker"], "seeds": [0, 1],
+                             "overrides": {"frames": 5000}},
+                        {}, {"exploration.alpha": "1,5", "fb.lr": "0.0001"})
+    names = [cell.name for cell in spec.cells(config)]
+    assert names == ["dvfb_walker_exploration.alpha=1.0_s0", "dvfb_walker_exploration.alpha=1.0_s1",
+                     "dvfb_walker_exploration.alpha=5.0_s0", "dvfb_walker_exploration.alpha=5.0_s1",
+                     "fb_walker_s0", "fb_walker_s1"]
+    dvfb_cell = spec.cells(config)[2]
+    resolved = spec.cell_config(config, dvfb_cell)
+    assert (resolved.exploration.alpha, resolved.fb.lr, resolved.frames, resolved.seed) == (5.0, 0.0001, 5000, 0)
+    assert config.overrides == {"frames": [5000], "exploration.alpha": [1.0, 5.0], "fb.lr": [0.0001]}
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--nope.x", "1"], "unrecognized arguments"),
+    (["--fb.hidden-dim", "wide"], "--fb.hidden-dim: 'wide' is not a valid int"),
+    (["--agents", "fb", "--exploration.alpha", "5"], "no method of the sweep (fb) has the option --exploration.alpha"),
+    (["--domains", "mars"], "unknown domain 'mars'"),
+    (["--fb.actor-arch", "mlp,cnn"], "'cnn' is not one of"),
+    (["--phases", "pretrain", "finetune"], "the finetune phase needs finetune_tasks"),
+])
+def test_bad_input_is_one_line_exit_2_and_creates_nothing(tmp_path, capsys, extra, message):
+    sweep_dir = tmp_path / "sweep"
+    with pytest.raises(SystemExit) if "unrecognized" in message else _no_raise():
+        code = main(["sweep", "run", "--dir", str(sweep_dir), "--executor", "debug", *extra])
+        assert code == 2
+    err = capsys.readouterr().err
+    assert message in err
+    if "unrecognized" not in message:
+        assert len(err.strip().splitlines()) == 1
+    assert not sweep_dir.exists()
+
+
+class _no_raise:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+# ---------------------------------------------------------------------------------------------
+# local and debug
+
+
+def test_debug_sweep_rerun_changes_nothing_and_other_grid_is_refused(tmp_path, capsys):
+    sweep_dir = tmp_path / "sweep"
+    args = sweep_args(sweep_dir, "debug", agents=("fb",), seeds=("0",), frames=400)
+    assert main(args) == 0
+    run = sweep_dir / "runs" / "fb_walker_s0"
+    files = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in run.rglob("*") if p.is_file()}
+    assert (run / "pretrain_summary.json").exists() and len(list((run / "zeroshot").glob("*.json"))) == 4
+    table = (sweep_dir / "report" / "table1_zeroshot.md").read_text()
+    stand = next(line for line in table.splitlines() if "walker_stand" in line)
+    assert "±" not in stand  # one seed: the mean alone
+    capsys.readouterr()
+    assert main(args) == 0
+    assert "0 unit(s) run, 2 already done" in capsys.readouterr().out
+    assert files == {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in run.rglob("*") if p.is_file()}
+    stored = (sweep_dir / "sweep.json").read_text()
+    assert main(sweep_args(sweep_dir, "debug", agents=("fb",), seeds=("0",), frames=800)) == 2
+    assert "holds another sweep (overrides differ" in capsys.readouterr().err
+    assert (sweep_dir / "sweep.json").read_text() == stored
+    assert unit_state(sweep_dir, "fb_walker_s0", "pretrain")["attempts"] == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# on the SLURM cluster
+
+
+def test_slurm_sweep_equals_local_and_reports_over_seeds(tmp_path, slurm_cluster, capsys):  # noqa: F811
+    local_dir, slurm_dir = tmp_path / "local", tmp_path / "slurm"
+    assert main(sweep_args(local_dir, "local", extra=["--workers", "2"])) == 0
+    assert main(sweep_args(slurm_dir, "slurm")) == 0
+    out = capsys.readouterr().out
+    assert "slurm: 8 job(s) submitted" in out
+    cells = ["dvfb_walker_s0", "dvfb_walker_s1", "fb_walker_s0", "fb_walker_s1"]
+    assert sorted(p.name for p in (slurm_dir / "runs").iterdir()) == cells
+    for cell in cells:
+        assert unit_state(slurm_dir, cell, "pretrain")["job_id"] in sweep_jobs(slurm_dir).values()
+        assert_same_results(local_dir, slurm_dir, cell)
+    table = (slurm_dir / "report" / "table1_zeroshot.md").read_text()
+    assert "walker_run" in table and "±" in table and "dvfb" in table and "fb" in table
+    assert table == (local_dir / "report" / "table1_zeroshot.md").read_text()
+    assert main(["sweep", "status", str(slurm_dir)]) == 0
+    status = capsys.readouterr().out
+    rows = status.splitlines()[1:-1]
+    assert [row.split()[:2] for row in rows] == [[cell, "done"] for cell in cells] and "4 done (4 cells" in status
+
+
+def test_requeued_job_resumes_and_ends_equal_to_an_uninterrupted_run(tmp_path, slurm_cluster):  # noqa: F811
+    one_cell = dict(agents=("fb",), seeds=("0",), frames=4000)
+    reference = tmp_path / "reference"
+    assert main(sweep_args(reference, "debug", **one_cell)) == 0
+    sweep_dir = tmp_path / "requeued"
+    submitter = subprocess.Popen([sys.executable, "-m", "dvfb", *sweep_args(sweep_dir, "slurm", **one_cell)],
+                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        run = sweep_dir / "runs" / "fb_walker_s0"
+        wait_until(lambda: (run / "checkpoints" / "latest").exists(), "the first checkpoint")
+        assert not (run / "pretrain_summary.json").exists(), "the run finished before it could be requeued"
+        job = sweep_jobs(sweep_dir)["fb_walker_s0/pretrain"]
+        subprocess.run(["scontrol", "requeue", job], check=True, capture_output=True)
+        output, _ = submitter.communicate(timeout=900)
+    finally:
+        if submitter.poll() is None:
+            submitter.kill()
+            submitter.wait()
+    assert submitter.returncode == 0, output
+    state = unit_state(sweep_dir, "fb_walker_s0", "pretrain")
+    assert state["state"] == "done" and state["attempts"] == 2
+    log = (sweep_dir / "logs" / "fb_walker_s0" / "pretrain.log").read_text()
+    assert "=== attempt 2" in log and log.split("=== attempt 2")[1].splitlines()[0].endswith("--resume")
+    assert json.loads((run / "pretrain_summary.json").read_text())["resumed_from"] > 0
+    assert_same_results(reference, sweep_dir, "fb_walker_s0")
+
+
+def test_rerun_after_killed_submitter_completes_only_the_missing_units(tmp_path, slurm_cluster, capsys):  # noqa: F811
+    sweep_dir = tmp_path / "sweep"
+    args = sweep_args(sweep_dir, "slurm", agents=("fb",), seeds=("0", "1"))
+    submitter = subprocess.Popen([sys.executable, "-m", "dvfb", *args], stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.DEVNULL)
+    runs = sweep_dir / "runs"
+    states = sweep_dir / "state"
+    wait_until(lambda: any(json.loads(p.read_text())["state"] == "done" for p in states.glob("*/pretrain.json")),
+               "a finished pre-training")
+    os.kill(submitter.pid, signal.SIGKILL)
+    submitter.wait()
+    # The allocation is lost too: every job of the sweep that is still queued or running goes.
+    jobs = sweep_jobs(sweep_dir)
+    left = [job for job in jobs.values() if job in squeue_ids()]
+    if left:
+        subprocess.run(["scancel", *left], check=True)
+    wait_until(lambda: not squeue_ids() & set(jobs.values()), "the cancelled jobs to end")
+    done_before = {key for key in jobs if (sweep_dir / "state" / f"{key}.json").exists()
+                   and unit_state(sweep_dir, *key.split("/"))["state"] == "done"}
+    assert done_before and len(done_before) < len(jobs), "the kill came too late or too early to test anything"
+    finished = {p: (p.stat().st_mtime_ns, p.read_bytes()) for key in done_before
+                for p in (runs / key.split("/")[0]).rglob("pretrain_summary.json")}
+    capsys.readouterr()
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert f"{len(jobs) - len(done_before)} job(s) submitted" in out
+    for key in jobs:
+        state = unit_state(sweep_dir, *key.split("/"))
+        assert state["state"] == "done"
+        if key in done_before:
+            assert state["attempts"] == 1, f"{key} ran again"
+    assert finished == {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in finished}
+
+
+def test_failing_cell_is_reported_with_its_log_and_the_rest_finish(tmp_path, slurm_cluster, capsys):  # noqa: F811
+    sweep_dir = tmp_path / "sweep"
+    # A replay smaller than an episode passes the config's checks and fails when the run starts.
+    code = main(sweep_args(sweep_dir, "slurm", agents=("fb",), seeds=("0",),
+                           extra=["--replay-capacity", "1000000,500"]))
+    out = capsys.readouterr().out
+    assert code == 1
+    bad, good = "fb_walker_replay_capacity=500_s0", "fb_walker_replay_capacity=1000000_s0"
+    log = sweep_dir / "logs" / bad / "pretrain.log"
+    assert f"FAILED {bad}/pretrain failed (exit status 2: dvfb pretrain: error: replay capacity (500) must be" in out
+    assert f"log: {log}" in out and "replay capacity (500)" in log.read_text()
+    assert f"{bad}/zeroshot not run" in out
+    assert len(list((sweep_dir / "runs" / good / "zeroshot").glob("*.json"))) == 4
+    assert (sweep_dir / "report" / "replay_capacity=1000000" / "report.md").exists()
+    assert main(["sweep", "status", str(sweep_dir)]) == 0
+    status = capsys.readouterr().out
+    assert f"{bad}" in status and "failed" in status and str(log) in status and "1 done, 1 failed" in status
