@@ -150,8 +150,7 @@ class IntrinsicDDPGAgent(Agent):
         """Train the reward module, score the batch with it, then one DDPG step on that reward."""
         metrics: dict[str, torch.Tensor] = {}
         reward = self.intrinsic.update_and_score(batch, metrics, self.net_runner)
-        metrics["intrinsic_reward"] = reward.mean()
-        self.core.update(batch, reward, metrics, self.net_runner)
+        self.core.update(batch, reward, metrics, self.net_runner)  # logs the reward's mean as "reward"
         return metrics
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
