@@ -17,7 +17,7 @@ import torch
 
 from dvfb.cli import main
 from dvfb.runs import list_snapshots, load_snapshot
-from dvfb.sweep import spec
+from dvfb.sweep import spec, units
 
 from slurm_cluster import slurm_cluster  # noqa: F401 - the session fixture
 
@@ -229,8 +229,14 @@ def test_rerun_after_killed_submitter_completes_only_the_missing_units(tmp_path,
     if left:
         subprocess.run(["scancel", *left], check=True)
     wait_until(lambda: not squeue_ids() & set(jobs.values()), "the cancelled jobs to end")
-    done_before = {key for key in jobs if (sweep_dir / "state" / f"{key}.json").exists()
-                   and unit_state(sweep_dir, *key.split("/"))["state"] == "done"}
+    # Done as the sweep itself decides it (the unit's outputs on disk): a job cancelled right after
+    # its command finished has a complete unit whose state file was not updated yet.
+    config, sweep = spec.load_stored(sweep_dir), units.SweepDir(sweep_dir)
+
+    def done(key: str) -> bool:
+        return units.is_done(sweep, config, units.find_unit(config, *key.split("/")))
+
+    done_before = {key for key in jobs if done(key)}
     assert done_before and len(done_before) < len(jobs), "the kill came too late or too early to test anything"
     finished = {p: (p.stat().st_mtime_ns, p.read_bytes()) for key in done_before
                 for p in (runs / key.split("/")[0]).rglob("pretrain_summary.json")}
@@ -240,9 +246,11 @@ def test_rerun_after_killed_submitter_completes_only_the_missing_units(tmp_path,
     assert f"{len(jobs) - len(done_before)} job(s) submitted" in out
     for key in jobs:
         state = unit_state(sweep_dir, *key.split("/"))
-        assert state["state"] == "done"
+        assert done(key)
         if key in done_before:
             assert state["attempts"] == 1, f"{key} ran again"
+        else:
+            assert state["state"] == "done"
     assert finished == {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in finished}
 
 
