@@ -20,10 +20,10 @@ from torch import nn
 from torch.nn import functional as F_nn
 
 from dvfb.config import param
-from dvfb.nets import RunningMeanStd, call_network, mlp, orthogonal_init_
+from dvfb.nets import call_network, mlp, orthogonal_init_
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
-from dvfb.rewards.knn import particle_entropy
+from dvfb.rewards.knn import KNNConfig, ParticleEntropy
 
 CE_NEIGHBOURS = ("least_similar", "most_similar")
 CE_AGGREGATES = ("log_of_mean", "mean_of_log")
@@ -143,7 +143,8 @@ class CICReward(IntrinsicReward):
         super().__init__()
         self.config = config
         self.encoders = ContrastiveEncoders(obs_dim, skill_dim, config.hidden_dim)
-        self.distance_stats = RunningMeanStd()
+        self.entropy = ParticleEntropy(KNNConfig(k=config.knn_k, average=True, clip=config.knn_clip,
+                                                 normaliser="var" if config.knn_rms else "none"))
 
     def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
         key = self.encoders.key(batch.obs, batch.next_obs, run)
@@ -153,7 +154,4 @@ class CICReward(IntrinsicReward):
         return {"nce_loss": loss.detach()}
 
     def score(self, batch: Batch, run: Runner = call_network) -> torch.Tensor:
-        c = self.config
-        rep = run(self.encoders.state_net, batch.next_obs)
-        return particle_entropy(rep, c.knn_k, average=True, clip=c.knn_clip,
-                                normaliser="var" if c.knn_rms else "none", stats=self.distance_stats)
+        return self.entropy(run(self.encoders.state_net, batch.next_obs))

@@ -62,9 +62,6 @@ class RNDReward(IntrinsicReward):
         self.networks = RNDNetworks(obs_dim, hidden_dim, rep_dim, obs_clip)
         self.error_stats = RunningMeanStd()
 
-    def predictor_parameters(self):
-        return self.networks.predictor.parameters()
-
     def prepare(self, obs: torch.Tensor, run: Runner = call_network) -> tuple[torch.Tensor, torch.Tensor]:
         """Normalised input and the frozen target's output: computed once, used by the loss and the reward."""
         normed = self.networks.normalise(obs)
