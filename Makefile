@@ -10,11 +10,12 @@ STAMP := $(VENV)/.installed
 
 install: $(STAMP)
 
-# torch is installed first and exactly, so that no looser spec pulls CUDA wheels.
+# torch is installed first and exactly, so that no looser spec pulls CUDA wheels. The development
+# install includes the optional Meta-World extra, so that the tests cover the faucet tasks.
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet -e '.[dev,metaworld]'
 	touch $(STAMP)
 
 # The GIF of the demo renders with OpenGL: gl-deps installs software OpenGL when it is missing.

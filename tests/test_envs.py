@@ -40,9 +40,12 @@ SPEC_TASKS = {
         "reach_bottom_right",
     ],
 }
-ALL_TASKS = [f"{d}_{t}" for d, tasks in SPEC_TASKS.items() for t in tasks]
+ALL_TASKS = [f"{d}_{t}" for d, tasks in SPEC_TASKS.items() for t in tasks]  # the DMC tasks
+# Meta-World (docs/tasks.md §4.6): registered after the DMC tasks, tested in tests/test_metaworld.py.
+METAWORLD_TASKS = ["metaworld_faucet_open", "metaworld_faucet_close"]
 # domain -> (obs dim, action dim, control dt, physics dt)
 SPEC_DIMS = {
+    "metaworld": (39, 4, 0.0125, 0.0025),
     "walker": (24, 6, 0.025, 0.0025),
     "quadruped": (78, 12, 0.02, 0.005),
     "hopper": (15, 4, 0.02, 0.005),
@@ -98,18 +101,19 @@ def task_reward(env) -> float:
 
 
 def test_registry_lists_every_spec_task_with_its_dims():
-    assert list(envs.TASKS) == ALL_TASKS
+    assert list(envs.TASKS) == ALL_TASKS + METAWORLD_TASKS
     for name, spec in envs.TASKS.items():
         obs_dim, action_dim, control_dt, _ = SPEC_DIMS[spec.domain]
+        episode_length = 250 if spec.domain == "metaworld" else 1000
         assert spec.name == name == f"{spec.domain}_{spec.task}"
-        assert (spec.obs_dim, spec.action_dim, spec.episode_length) == (obs_dim, action_dim, 1000)
+        assert (spec.obs_dim, spec.action_dim, spec.episode_length) == (obs_dim, action_dim, episode_length)
         assert spec.control_dt == pytest.approx(control_dt)
     with pytest.raises(dataclasses.FrozenInstanceError):
         envs.TASKS["walker_walk"].obs_dim = 3
 
 
 def test_domains_and_helpers():
-    assert envs.DOMAINS == SPEC_PRETRAIN
+    assert envs.DOMAINS == {**SPEC_PRETRAIN, "metaworld": "metaworld_faucet_open"}
     for domain, tasks in SPEC_TASKS.items():
         assert envs.tasks_of_domain(domain) == [f"{domain}_{t}" for t in tasks]
         assert envs.pretrain_task(domain) == SPEC_PRETRAIN[domain]
@@ -560,7 +564,7 @@ def test_reward_free_returns_zero_and_reports_task_reward():
 
 
 def test_gymnasium_make_works_without_extra_time_limit():
-    for name in ALL_TASKS:
+    for name in ALL_TASKS + METAWORLD_TASKS:
         assert f"dvfb/{name}" in gymnasium.registry
     env = gymnasium.make("dvfb/walker_walk", seed=5)
     assert env.unwrapped.physics is env.unwrapped.dmc_env.physics

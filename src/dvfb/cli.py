@@ -138,10 +138,12 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
         result = zeroshot(args.run, task, snapshot=args.snapshot, inference=inference, seed=args.seed,
                           z_source=args.z_source, reward_fn=args.reward_fn, goal=goal,
                           overwrite=args.overwrite, progress=args.progress)
-        rows.append((task, result["mean_return"], result["std_return"], result["eval_episodes"]))
-    print(f"{'task':<36} {'return':>9} {'std':>8} {'episodes':>9}")
-    for task, mean, std, n in rows:
-        print(f"{task:<36} {mean:9.1f} {std:8.1f} {n:9d}")
+        rows.append((task, result["mean_return"], result["std_return"], result["eval_episodes"],
+                     result.get("success_rate")))
+    with_success = any(row[4] is not None for row in rows)
+    print(f"{'task':<36} {'return':>9} {'std':>8} {'episodes':>9}" + (f" {'success':>8}" if with_success else ""))
+    for task, mean, std, n, success in rows:
+        print(f"{task:<36} {mean:9.1f} {std:8.1f} {n:9d}" + (f" {success:8.2f}" if success is not None else ""))
     return 0
 
 
@@ -157,6 +159,9 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     print(f"fine-tuning finished: {run.path}")
     print(f"zero-shot return {summary['zero_shot_return']:.1f} -> after {summary['frames']} frames "
           f"{summary['final_return']:.1f}")
+    if "final_success_rate" in summary:
+        print(f"zero-shot success rate {summary['zero_shot_success_rate']:.2f} -> after {summary['frames']} frames "
+              f"{summary['final_success_rate']:.2f}")
     return 0
 
 
@@ -223,19 +228,22 @@ def cmd_random_policy(args: argparse.Namespace) -> int:
     """Returns of a uniform-random policy on every task of a domain (the table's floor)."""
     from dvfb import envs
     from dvfb.runs import write_json_atomic
-    from dvfb.workflows.zeroshot import random_policy_return
+    from dvfb.workflows.zeroshot import random_policy_evaluation
 
     if args.domain not in envs.DOMAINS:
         raise ConfigError(f"unknown domain {args.domain!r}; choose one of {', '.join(envs.DOMAINS)}")
     output = Path(args.output) if args.output else None
     if output is not None and output.exists() and not args.overwrite:
         raise ConfigError(f"{output} exists; pass --overwrite to replace it")
+    missing = envs.missing_extra(args.domain)
+    if missing:
+        raise ConfigError(missing)
     results = {}
     for task in envs.tasks_of_domain(args.domain):
-        returns = random_policy_return(task, args.episodes, seed=args.seed)
-        results[task] = {"returns": returns, "mean_return": float(np.mean(returns)),
-                         "std_return": float(np.std(returns))}
-        print(f"{task:<36} {results[task]['mean_return']:9.1f} {results[task]['std_return']:8.1f}")
+        results[task] = random_policy_evaluation(task, args.episodes, seed=args.seed).summary()
+        success = results[task].get("success_rate")
+        print(f"{task:<36} {results[task]['mean_return']:9.1f} {results[task]['std_return']:8.1f}"
+              + (f"  success {success:.2f}" if success is not None else ""))
     if output is not None:
         output.parent.mkdir(parents=True, exist_ok=True)
         write_json_atomic(output, {"agent": "random", "domain": args.domain, "seed": args.seed,
@@ -262,13 +270,13 @@ def cmd_sweep_status(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    """Tables 1 and 2 of the paper and fine-tuning curves from run directories."""
+    """Tables 1, 2 and 6 of the paper and fine-tuning curves from run directories."""
     from dvfb.analysis.report import make_report
     from dvfb.analysis.tables import to_markdown
 
     report = make_report(args.runs, args.out, spread="se" if args.stderr else "std",
                          random_files=args.random or (), overwrite=args.overwrite)
-    for table in (report.zeroshot, report.finetune):
+    for table in (report.zeroshot, report.finetune, report.success_zeroshot, report.success_finetune):
         if table is not None:
             print(f"## {table.title}\n\n{to_markdown(table)}\n")
     for note in report.notes:
@@ -456,7 +464,7 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
     q.set_defaults(func=cmd_sweep_status)
 
     p = sub.add_parser(
-        "report", help="Table 1 (zero-shot), Table 2 (fine-tuning) and fine-tuning curves",
+        "report", help="Table 1 (zero-shot), Table 2 (fine-tuning), Table 6 (success rates) and fine-tuning curves",
         formatter_class=_Formatter,
         description="Markdown and CSV tables shaped like the paper's Table 1 (zero-shot) and Table 2 "
                     "(fine-tuning, last point of each curve): rows domain/task with per-domain averages, "

@@ -208,7 +208,8 @@ def discover_runs(paths: Sequence[str | os.PathLike]) -> Runs:
 
 @dataclass(frozen=True)
 class Score:
-    """One number of a table: the return of one method, seed and task, and the file it came from."""
+    """One number of a table: the return (or success rate) of one method, seed and task, and the
+    file it came from."""
 
     kind: str  # "zeroshot", "finetune" or "random"
     method: str
@@ -234,8 +235,19 @@ def _number(path: Path, data: dict, key: str) -> float:
     return float(value)
 
 
-def zeroshot_scores(runs: Iterable[PretrainRun]) -> list[Score]:
-    """The final-snapshot zero-shot results ``RUN/zeroshot/<task>.json`` (paper Table 1).
+RETURN = "mean_return"
+SUCCESS = "success_rate"
+METRICS = (RETURN, SUCCESS)
+
+
+def _has(data: dict, metric: str) -> bool:
+    """Every result has a return; only tasks with a success criterion (Meta-World) a success rate."""
+    return metric == RETURN or metric in data
+
+
+def zeroshot_scores(runs: Iterable[PretrainRun], metric: str = RETURN) -> list[Score]:
+    """The final-snapshot zero-shot results ``RUN/zeroshot/<task>.json`` (paper Table 1; with
+    ``metric="success_rate"`` Table 6, from the results that carry a success rate).
 
     ``<task>@<frames>.json`` files (earlier snapshots) are not part of the table.
     """
@@ -248,14 +260,17 @@ def zeroshot_scores(runs: Iterable[PretrainRun]) -> list[Score]:
             if "@" in path.stem or path.name.startswith("."):
                 continue
             data = read_json(path)
+            if not _has(data, metric):
+                continue
             task = data.get("task", path.stem)
             scores.append(Score("zeroshot", run.method, run.config.domain, task, run.config.seed,
-                                _number(path, data, "mean_return"), path))
+                                _number(path, data, metric), path))
     return scores
 
 
-def finetune_scores(runs: Iterable[FinetuneRun]) -> list[Score]:
-    """The last point of each fine-tuning curve ``RUN/finetune/<name>/curve.json`` (paper Table 2)."""
+def finetune_scores(runs: Iterable[FinetuneRun], metric: str = RETURN) -> list[Score]:
+    """The last point of each fine-tuning curve ``RUN/finetune/<name>/curve.json`` (paper Table 2),
+    or its success rate (``metric="success_rate"``, points that carry one)."""
     scores = []
     for run in runs:
         path = run.path / "curve.json"
@@ -267,13 +282,15 @@ def finetune_scores(runs: Iterable[FinetuneRun]) -> list[Score]:
         if not isinstance(curve, list) or not curve:
             raise AnalysisError(f"{path}: 'curve' is missing or empty")
         last = curve[-1]
+        if isinstance(last, dict) and not _has(last, metric):
+            continue
         scores.append(Score("finetune", run.method, run.config.domain, run.config.task,
-                            (run.pretrain_seed, run.config.seed), _number(path, last, "mean_return"), path,
+                            (run.pretrain_seed, run.config.seed), _number(path, last, metric), path,
                             frames=int(_number(path, last, "frames"))))
     return scores
 
 
-def random_scores(files: Iterable[str | os.PathLike]) -> list[Score]:
+def random_scores(files: Iterable[str | os.PathLike], metric: str = RETURN) -> list[Score]:
     """Scores of ``dvfb random-policy --output`` files; each file is one seed of the column."""
     scores = []
     for raw in files:
@@ -287,8 +304,10 @@ def random_scores(files: Iterable[str | os.PathLike]) -> list[Score]:
         for task, result in sorted(tasks.items()):
             if not isinstance(result, dict):
                 raise AnalysisError(f"{path}: tasks.{task} is not an object")
+            if not _has(result, metric):
+                continue
             scores.append(Score("random", "random", data["domain"], task, data.get("seed", 0),
-                                _number(path, result, "mean_return"), path))
+                                _number(path, result, metric), path))
     return scores
 
 

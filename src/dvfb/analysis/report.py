@@ -1,4 +1,5 @@
-"""``dvfb report``: the paper's Table 1 (zero-shot), Table 2 (fine-tuning) and fine-tuning curves.
+"""``dvfb report``: the paper's Table 1 (zero-shot), Table 2 (fine-tuning), Table 6 (success rates)
+and fine-tuning curves.
 
 Inputs are run directories or directories of runs (see :func:`dvfb.analysis.common.discover_runs`)
 and optional random-policy files. Outputs, in ``out_dir``:
@@ -6,6 +7,8 @@ and optional random-policy files. Outputs, in ``out_dir``:
 * ``report.md`` -- both tables (raw returns and expert-normalised), notes, links to the curves;
 * ``table1_zeroshot.md/.csv`` and ``table1_zeroshot_normalised.csv`` (when zero-shot results exist);
 * ``table2_finetune.md/.csv`` and ``table2_finetune_normalised.csv`` (when fine-tuning runs exist);
+* ``table6_success.md`` with ``table6_success_zeroshot.csv`` and ``table6_success_finetune.csv``
+  (when results carry success rates: the Meta-World tasks, docs/tasks.md §4.6);
 * ``curves/finetune_<task>.png`` and ``curves/finetune_all.png`` (when fine-tuning runs exist).
 """
 
@@ -18,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dvfb.analysis.common import (
+    SUCCESS,
     AnalysisError,
     check_duplicates,
     discover_runs,
@@ -26,10 +30,12 @@ from dvfb.analysis.common import (
     zeroshot_scores,
 )
 from dvfb.analysis.curves import load_curves, plot_curves
-from dvfb.analysis.tables import Table, build_table, table_markdown_section, to_csv
+from dvfb.analysis.tables import Table, build_table, success_markdown_section, table_markdown_section, to_csv
 
 TABLE1 = "Table 1: zero-shot"
 TABLE2 = "Table 2: fine-tuning (last evaluation of each curve)"
+TABLE6_ZEROSHOT = "Table 6: zero-shot success rate"
+TABLE6_FINETUNE = "Table 6: success rate after fine-tuning (last evaluation of each curve)"
 
 
 @dataclass
@@ -37,12 +43,17 @@ class Report:
     out_dir: Path
     zeroshot: Table | None = None
     finetune: Table | None = None
+    success_zeroshot: Table | None = None
+    success_finetune: Table | None = None
     files: list[Path] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
 
-def _outputs(out_dir: Path, has_zeroshot: bool, has_finetune: bool) -> list[Path]:
+def _outputs(out_dir: Path, has_zeroshot: bool, has_finetune: bool, success: tuple[bool, bool]) -> list[Path]:
     names = ["report.md"]
+    if any(success):
+        names.append("table6_success.md")
+    names += [f"table6_success_{kind}.csv" for kind, has in zip(("zeroshot", "finetune"), success) if has]
     if has_zeroshot:
         names += ["table1_zeroshot.md", "table1_zeroshot.csv", "table1_zeroshot_normalised.csv"]
     if has_finetune:
@@ -59,13 +70,15 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
     ft = finetune_scores(runs.finetune)
     rnd = random_scores(random_files)
     check_duplicates([*zs, *ft, *rnd])
+    zs_success, ft_success = zeroshot_scores(runs.pretrain, SUCCESS), finetune_scores(runs.finetune, SUCCESS)
+    rnd_success = random_scores(random_files, SUCCESS)
     if not zs and not ft:
         found = f"{len(runs.pretrain)} pre-training run(s)" if runs.pretrain else "no dvfb run"
         raise AnalysisError(f"found {found} and no zero-shot or fine-tuning results under "
                             f"{', '.join(map(str, paths))}; run `dvfb zeroshot` or `dvfb finetune` first")
     report = Report(out_dir)
     curves = load_curves(runs.finetune) if ft else {}
-    planned = _outputs(out_dir, bool(zs or rnd), bool(ft))
+    planned = _outputs(out_dir, bool(zs or rnd), bool(ft), (bool(zs_success or rnd_success), bool(ft_success)))
     planned += [out_dir / "curves" / f"finetune_{task}.png" for task in curves]
     existing = [p for p in planned if p.exists()]
     if existing and not overwrite:
@@ -103,6 +116,18 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
         sections += ["## Fine-tuning curves", ""]
         sections += [f"![{p.stem}](curves/{p.name})" for p in pngs]
         sections.append("")
+    success_sections = []
+    if zs_success or rnd_success:
+        report.success_zeroshot = build_table([*zs_success, *rnd_success], TABLE6_ZEROSHOT, spread, digits=2)
+        success_sections.append(success_markdown_section(report.success_zeroshot))
+        _write(out_dir / "table6_success_zeroshot.csv", to_csv(report.success_zeroshot), report)
+    if ft_success:
+        report.success_finetune = build_table(ft_success, TABLE6_FINETUNE, spread, digits=2)
+        success_sections.append(success_markdown_section(report.success_finetune))
+        _write(out_dir / "table6_success_finetune.csv", to_csv(report.success_finetune), report)
+    if success_sections:
+        _write(out_dir / "table6_success.md", "\n\n".join(success_sections) + "\n", report)
+        sections += ["\n\n".join(success_sections), ""]
     if report.notes:
         sections += ["## Notes", ""] + [f"- {note}" for note in report.notes] + [""]
     _write(out_dir / "report.md", "\n".join(sections), report)

@@ -1,4 +1,5 @@
-"""Result tables shaped like the paper's Table 1 (zero-shot) and Table 2 (fine-tuning).
+"""Result tables shaped like the paper's Table 1 (zero-shot), Table 2 (fine-tuning) and Table 6
+(success rates on the Meta-World tasks, docs/tasks.md §4.6).
 
 Rows are the tasks of every domain that appears in the inputs (registry order, docs/tasks.md §0), each
 domain followed by an ``average`` row; columns are methods (named by
@@ -78,6 +79,7 @@ class Table:
     cells: dict[tuple[str, str], Cell]  # (task or f"{domain}/average", method) -> Cell
     normalised: dict[tuple[str, str], Cell]
     spread: str = "std"
+    digits: int = 1  # decimals shown in markdown (success rates: 2)
 
     @staticmethod
     def row_key(domain: str, task: str) -> str:
@@ -104,7 +106,7 @@ def _domains_and_tasks(scores: Iterable[Score]) -> list[tuple[str, list[str]]]:
     return result
 
 
-def build_table(scores: Sequence[Score], title: str, spread: str = "std") -> Table:
+def build_table(scores: Sequence[Score], title: str, spread: str = "std", digits: int = 1) -> Table:
     """Aggregate scores (already checked for duplicates) into a :class:`Table`."""
     if spread not in SPREADS:
         raise ValueError(f"spread must be one of {SPREADS}")
@@ -131,7 +133,7 @@ def build_table(scores: Sequence[Score], title: str, spread: str = "std") -> Tab
                 cells[key] = _average(tasks, by_seed, lambda task, v: v)
                 if all(task in EXPERT_RETURNS for task in tasks):
                     normalised[key] = _average(tasks, by_seed, lambda task, v: 100.0 * v / EXPERT_RETURNS[task])
-    return Table(title, rows, columns, cells, normalised, spread)
+    return Table(title, rows, columns, cells, normalised, spread, digits)
 
 
 def _average(tasks: list[str], by_seed: dict[str, dict], transform) -> Cell:
@@ -169,7 +171,8 @@ def to_markdown(table: Table, normalised: bool = False) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---", "---"] + ["---:"] * len(table.columns)) + "|"]
     for domain, task in table.rows:
         label = f"**{AVERAGE}**" if task == AVERAGE else task
-        values = [format_cell(cells.get((table.row_key(domain, task), m)), table.spread) for m in table.columns]
+        values = [format_cell(cells.get((table.row_key(domain, task), m)), table.spread, table.digits)
+                  for m in table.columns]
         lines.append("| " + " | ".join([domain, label, *values]) + " |")
     return "\n".join(lines)
 
@@ -194,6 +197,19 @@ def table_markdown_section(table: Table, heading_level: int = 2) -> str:
         to_markdown(table, normalised=True),
     ]
     return "\n".join(parts)
+
+
+def success_markdown_section(table: Table, heading_level: int = 2) -> str:
+    """A success-rate table (paper Table 6 shape) with its caption; no normalised variant."""
+    hashes = "#" * heading_level
+    return "\n".join([
+        f"{hashes} {table.title}",
+        "",
+        "Success rate: the fraction of evaluation episodes that end in success, read at the final "
+        f"(250th) step (docs/tasks.md §4.6); mean ± {_spread_words(table.spread)}. `–`: no result.",
+        "",
+        to_markdown(table),
+    ])
 
 
 def to_csv(table: Table, normalised: bool = False) -> str:

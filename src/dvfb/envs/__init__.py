@@ -1,4 +1,5 @@
-"""DeepMind Control tasks of the DVFB paper behind a gymnasium API (docs/tasks.md §0-§6).
+"""The DVFB paper's tasks behind a gymnasium API: DeepMind Control (docs/tasks.md §0-§6) and,
+with the optional extra, Meta-World's faucet tasks (§4.6, §7).
 
 Public API::
 
@@ -9,7 +10,8 @@ Public API::
 
 Importing this package also registers every task with gymnasium as ``dvfb/<name>``, so
 ``gymnasium.make("dvfb/walker_flip", seed=0)`` works. The registration adds no TimeLimit wrapper:
-the environment truncates at step 1000 itself (docs/tasks.md §2).
+the environment truncates itself at its episode length (docs/tasks.md §2, §4.6). The Meta-World
+names are registered even without the extra; making one then says how to install it.
 """
 
 from dvfb.envs._mujoco_gl import configure_default_mujoco_gl
@@ -26,6 +28,7 @@ from dvfb.envs.registry import (  # noqa: E402
     TASKS,
     TaskSpec,
     format_task_table,
+    missing_extra,
     pretrain_task,
     resolve_task,
     tasks_of_domain,
@@ -41,6 +44,7 @@ __all__ = [
     "TaskSpec",
     "format_task_table",
     "make",
+    "missing_extra",
     "pretrain_task",
     "resolve_task",
     "tasks_of_domain",
@@ -57,7 +61,7 @@ def _register_with_gymnasium() -> None:
             id=env_id,
             entry_point="dvfb.envs.factory:make",
             kwargs={"name": task_name},
-            max_episode_steps=None,  # the env truncates itself at step 1000; no TimeLimit wrapper
+            max_episode_steps=None,  # the env truncates itself; no TimeLimit wrapper
         )
 
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
-from dvfb.envs.gym_env import DMCGymEnv
-from dvfb.envs.registry import domain_module, resolve_task
+import gymnasium as gym
+
+from dvfb.envs.registry import domain_module, missing_extra, resolve_task
+from dvfb.errors import ConfigError
 
 
 def make(
@@ -11,22 +13,32 @@ def make(
     seed: int | None = None,
     reward_free: bool = False,
     render_mode: str | None = None,
-) -> DMCGymEnv:
+) -> gym.Env:
     """Build the gymnasium environment of a task.
 
     Args:
         name: a full task name such as ``walker_flip`` (see ``dvfb.envs.TASKS``); with
             ``reward_free=True`` a bare domain name (``walker``) is also accepted and means the
             domain's pre-training task (docs/tasks.md §5).
-        seed: seeds the task RNG(s) (``task_kwargs.random = seed``, docs/tasks.md §2); None draws fresh
+        seed: seeds the task RNG(s) (``task_kwargs.random = seed``, docs/tasks.md §2; for
+            Meta-World the ML1 task set and the task drawn at each reset, §4.6); None draws fresh
             entropy. ``reset(seed=...)`` reseeds later.
         reward_free: return reward 0.0 from ``step``; the task reward is still computed and put in
             ``info["task_reward"]`` (docs/tasks.md §3).
         render_mode: None or ``"rgb_array"``.
 
     Raises:
-        dvfb.errors.ConfigError: unknown name (the message lists the valid names).
+        dvfb.errors.ConfigError: unknown name (the message lists the valid names), or a task
+            whose optional extra is not installed (the message says how to install it).
     """
     task_spec = resolve_task(name, reward_free=reward_free)
-    dmc_env = domain_module(task_spec.domain).build_environment(task_spec.task, seed=seed)
+    missing = missing_extra(task_spec.name)
+    if missing:
+        raise ConfigError(missing)
+    module = domain_module(task_spec.domain)
+    if hasattr(module, "make_gym_env"):  # a domain with its own front end (Meta-World)
+        return module.make_gym_env(task_spec, seed, reward_free, render_mode)
+    from dvfb.envs.gym_env import DMCGymEnv
+
+    dmc_env = module.build_environment(task_spec.task, seed=seed)
     return DMCGymEnv(task_spec, dmc_env, reward_free=reward_free, render_mode=render_mode)

@@ -1,13 +1,16 @@
-"""The task registry: every DMC task of docs/tasks.md §0 with its static facts, and name resolution.
+"""The task registry: every task of docs/tasks.md §0 with its static facts, and name resolution.
 
-This module imports neither dm_control nor MuJoCo, so listing tasks (``dvfb tasks``) stays cheap.
-The domain modules that build the environments are imported lazily by :func:`domain_module`.
+This module imports neither dm_control, MuJoCo nor Meta-World, so listing tasks (``dvfb tasks``)
+stays cheap. The domain modules that build the environments are imported lazily by
+:func:`domain_module`. Domains that need an optional extra (Meta-World) are always listed; without
+the extra, :func:`missing_extra` says so and how to install it.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import importlib
+import importlib.util
 from types import ModuleType
 
 from dvfb.errors import ConfigError
@@ -43,11 +46,12 @@ class _DomainFacts:
     action_dim: int
     control_dt: float
     pretrain_task: str  # the authors' pre-training ("primal") task, docs/tasks.md §5
-    module: str  # dvfb.envs.<module> builds the dm_control environment
+    module: str  # dvfb.envs.<module> builds the environment
+    episode_length: int = 1000  # docs/tasks.md §2: 1000 steps for every DMC domain
+    extra: str | None = None  # the optional extra (and package) the domain needs, if any
 
 
-# docs/tasks.md §0 (dims, control dt), §2 (1000 steps for every DMC domain) and §5 (pre-training task).
-_EPISODE_LENGTH = 1000
+# docs/tasks.md §0 (dims, control dt, episode length), §2 and §5 (pre-training task).
 _DOMAIN_FACTS: dict[str, _DomainFacts] = {
     "walker": _DomainFacts(("stand", "walk", "run", "flip"), 24, 6, 0.025, "walk", "walker"),
     "quadruped": _DomainFacts(("stand", "walk", "jump", "run"), 78, 12, 0.02, "walk", "quadruped"),
@@ -65,7 +69,15 @@ _DOMAIN_FACTS: dict[str, _DomainFacts] = {
         "reach_top_left",
         "point_mass_maze",
     ),
+    # docs/tasks.md §4.6: the authors' 250-step cap; pre-training on faucet-open (§5).
+    "metaworld": _DomainFacts(
+        ("faucet_open", "faucet_close"), 39, 4, 0.0125, "faucet_open", "meta_world",
+        episode_length=250, extra="metaworld",
+    ),
 }
+
+EXTRA_INSTALL = {"metaworld": "pip install -e '.[metaworld]'"}
+"""How to install each optional extra (from a clone of the repository)."""
 
 TASKS: dict[str, TaskSpec] = {
     f"{domain}_{task}": TaskSpec(
@@ -74,7 +86,7 @@ TASKS: dict[str, TaskSpec] = {
         task=task,
         obs_dim=facts.obs_dim,
         action_dim=facts.action_dim,
-        episode_length=_EPISODE_LENGTH,
+        episode_length=facts.episode_length,
         control_dt=facts.control_dt,
     )
     for domain, facts in _DOMAIN_FACTS.items()
@@ -125,6 +137,16 @@ def resolve_task(name: str, reward_free: bool = False) -> TaskSpec:
     )
 
 
+def missing_extra(name: str) -> str | None:
+    """None if the task or domain ``name`` can be built here, else a line saying what to install."""
+    domain = TASKS[name].domain if name in TASKS else name
+    extra = _DOMAIN_FACTS[domain].extra
+    if extra is None or importlib.util.find_spec(extra) is not None:
+        return None
+    return (f"the {domain} tasks need the optional extra {extra!r}, which is not installed: "
+            f"{EXTRA_INSTALL[extra]}")
+
+
 def domain_module(domain: str) -> ModuleType:
     """Import and return the module ``dvfb.envs.<domain>`` that builds the domain's tasks."""
     return importlib.import_module(f"dvfb.envs.{_DOMAIN_FACTS[domain].module}")
@@ -133,13 +155,16 @@ def domain_module(domain: str) -> ModuleType:
 def format_task_table() -> str:
     """A markdown table of every task: name, domain, obs dim, action dim, episode length.
 
-    Pre-training tasks (docs/tasks.md §5) are marked with ``*``.
+    Pre-training tasks (docs/tasks.md §5) are marked with ``*``; tasks whose optional extra is
+    not installed are marked unavailable, with the install command below the table.
     """
     header = ("task", "domain", "obs dim", "action dim", "episode length")
     pretrain_names = set(DOMAINS.values())
+    missing = {domain: missing_extra(domain) for domain in DOMAINS}
     rows = [
         (
-            spec.name + (" *" if spec.name in pretrain_names else ""),
+            spec.name + (" *" if spec.name in pretrain_names else "")
+            + (" (unavailable)" if missing[spec.domain] else ""),
             spec.domain,
             str(spec.obs_dim),
             str(spec.action_dim),
@@ -156,4 +181,5 @@ def format_task_table() -> str:
 
     separator = "|" + "|".join("-" * (w + 2) for w in widths) + "|"
     footer = "* = reward-free pre-training task of its domain (used when only the domain is given)"
-    return "\n".join([line(header), separator, *(line(row) for row in rows), "", footer])
+    notes = [f"unavailable: {reason}" for reason in dict.fromkeys(filter(None, missing.values()))]
+    return "\n".join([line(header), separator, *(line(row) for row in rows), "", footer, *notes])

@@ -54,7 +54,7 @@ from dvfb.workflows.common import (
     rng_state,
     seed_everything,
 )
-from dvfb.workflows.evaluate import evaluate_policy
+from dvfb.workflows.evaluate import Evaluation, evaluate_policy
 from dvfb.workflows.zeroshot import task_skill
 
 RESUME_KIND = "finetune_resume"
@@ -202,9 +202,8 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
         # The inference data are discarded (§8.2 step 6) unless kept above.
         finetuner = finetuner_cls(agent, z, cfg)
         logger = MetricsLogger(ft_run)
-        returns = evaluate_policy(agent, eval_env, z, cfg.eval_episodes)
-        curve = [_curve_point(0, returns)]
-        logger.log(0, {"eval_return": curve[-1]["mean_return"]}, prefix="eval")
+        curve = [_curve_point(0, evaluate_policy(agent, eval_env, z, cfg.eval_episodes))]
+        logger.log(0, _eval_metrics(curve[-1]), prefix="eval")
         step = 0
     _write_curve(ft_run, run_config, curve, inference_info, z)
 
@@ -249,9 +248,8 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
                     if means:
                         logger.log(step, means, prefix="train")
                 if step % cfg.eval_every == 0 or step == cfg.frames:
-                    returns = evaluate_policy(agent, eval_env, z, cfg.eval_episodes)
-                    curve.append(_curve_point(step, returns))
-                    logger.log(step, {"eval_return": curve[-1]["mean_return"]}, prefix="eval")
+                    curve.append(_curve_point(step, evaluate_policy(agent, eval_env, z, cfg.eval_episodes)))
+                    logger.log(step, _eval_metrics(curve[-1]), prefix="eval")
                     _write_curve(ft_run, run_config, curve, inference_info, z)
                 if terminated or truncated:
                     episode_start = True
@@ -270,13 +268,20 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
         logger.close()
     write_json_atomic(ft_run.path / "finetune_summary.json", {
         "task": task, "frames": step, "wall_clock_s": time.time() - started,
-        "zero_shot_return": curve[0]["mean_return"], "final_return": curve[-1]["mean_return"]})
+        "zero_shot_return": curve[0]["mean_return"], "final_return": curve[-1]["mean_return"],
+        **({"zero_shot_success_rate": curve[0]["success_rate"], "final_success_rate": curve[-1]["success_rate"]}
+           if "success_rate" in curve[-1] else {})})
     return ft_run
 
 
-def _curve_point(frames: int, returns: list[float]) -> dict:
-    return {"frames": frames, "mean_return": float(np.mean(returns)), "std_return": float(np.std(returns)),
-            "returns": returns}
+def _curve_point(frames: int, evaluation: Evaluation) -> dict:
+    return {"frames": frames, **evaluation.summary()}
+
+
+def _eval_metrics(point: dict) -> dict:
+    """What an evaluation logs: the mean return, and the success rate where the task has one."""
+    return {"eval_return": point["mean_return"],
+            **({"eval_success_rate": point["success_rate"]} if "success_rate" in point else {})}
 
 
 def _write_curve(run: RunDir, config: FinetuneRunConfig, curve: list[dict], inference_info: dict,

@@ -42,7 +42,7 @@ from dvfb.workflows.common import (
     seed_everything,
 )
 from dvfb.workflows.config import InferenceConfig, PretrainConfig
-from dvfb.workflows.evaluate import collect_inference_data, evaluate_policy
+from dvfb.workflows.evaluate import Evaluation, collect_inference_data, evaluate_policy, run_episodes
 
 Z_SOURCES = ("rewards", "reward_fn", "goal")
 
@@ -138,7 +138,7 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     try:
         z, info = task_skill(agent, run, config, task, cfg, rng, seed, z_source, reward_fn, goal, progress=bar)
         eval_env = envs.make(task, seed=seed)
-        returns = evaluate_policy(agent, eval_env, z, cfg.eval_episodes, progress=bar)
+        evaluation = evaluate_policy(agent, eval_env, z, cfg.eval_episodes, progress=bar)
     finally:
         bar.close()
     result = {
@@ -146,9 +146,7 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
         "pretrain_seed": config.seed, "seed": seed, "snapshot_frames": snapshot,
         "z_source": z_source if get_spec(config.agent).zero_shot == "reward_inference" else "none",
         "inference": to_dict(cfg), "inference_info": info, "z": None if z is None else z.cpu().tolist(),
-        "returns": returns, "mean_return": float(np.mean(returns)) if returns else float("nan"),
-        "std_return": float(np.std(returns)) if returns else float("nan"),
-        "eval_episodes": len(returns), "wall_clock_s": time.time() - started,
+        **evaluation.summary(), "eval_episodes": len(evaluation.returns), "wall_clock_s": time.time() - started,
     }
     out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out, result)
@@ -197,20 +195,19 @@ def check_goal(goal: np.ndarray, obs_dim: int, domain: str) -> None:
         raise ConfigError("--goal holds a non-finite value")
 
 
-def random_policy_return(task: str, episodes: int, seed: int = 0) -> list[float]:
-    """Returns of a uniform-random policy: the floor every zero-shot table should show."""
+def random_policy_evaluation(task: str, episodes: int, seed: int = 0) -> Evaluation:
+    """Uniform-random actions: the floor every zero-shot table should show (returns, and success
+    rates where the task has them)."""
     env = envs.make(task, seed=seed)
     rng = np.random.default_rng(seed)
-    returns = []
-    for _ in range(episodes):
-        env.reset()
-        total, done = 0.0, False
-        while not done:
-            _, reward, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
-            total += reward
-            done = terminated or truncated
-        returns.append(total)
-    return returns
+    shape = env.action_space.shape
+    return run_episodes(env, lambda obs: rng.uniform(-1, 1, shape).astype(np.float32), episodes)
 
 
-__all__ = ["PretrainConfig", "Z_SOURCES", "infer_task_vector", "random_policy_return", "zeroshot"]
+def random_policy_return(task: str, episodes: int, seed: int = 0) -> list[float]:
+    """Returns of a uniform-random policy (:func:`random_policy_evaluation`)."""
+    return random_policy_evaluation(task, episodes, seed).returns
+
+
+__all__ = ["PretrainConfig", "Z_SOURCES", "infer_task_vector", "random_policy_evaluation", "random_policy_return",
+           "zeroshot"]

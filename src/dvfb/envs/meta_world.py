@@ -1,0 +1,246 @@
+"""Meta-World faucet-open and faucet-close (docs/tasks.md §4.6), behind the same gymnasium API.
+
+Needs the optional extra ``pip install -e '.[metaworld]'`` (metaworld 3.0.0). Importing this module
+checks the installed version and, on MuJoCo builds whose weld constraint has 12 parameters
+(3.17 has; the MuJoCo that metaworld was written for had 11), fixes Meta-World's mocap-weld reset,
+which otherwise fails when a faucet env is built (docs/tasks.md §7). The fix writes the same 11
+values as Meta-World and leaves the new 12th one at the model's value. Nothing of dm_control is
+touched, so the DMC tasks' physics do not change when the extra is installed.
+
+What :class:`MetaWorldGymEnv` does (docs/tasks.md §4.6):
+
+* The task set is ML1's 50 **test** tasks of the faucet env, built with the env's seed. Every reset
+  picks one uniformly at random and applies it (the faucet position), then resets.
+* Observations: 39 float32 values, the goal coordinates zeroed (ML1 is partially observable).
+* Episodes are truncated after 250 steps (never terminated); Meta-World's own limit (500) is never
+  reached.
+* The reward is Meta-World's default "v2" reward in [0, 10]; ``info["task_reward"]`` always holds it
+  and ``info["success"]`` the task's success flag (handle within 7 cm of the target) at this step.
+  The protocol reads success at the final step of an episode (docs/tasks.md §4.6).
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.metadata
+import pickle
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.error import ResetNeeded
+
+from dvfb.envs.registry import TaskSpec
+from dvfb.errors import ConfigError
+
+SUPPORTED_VERSION = "3.0.0"
+INSTALL_HINT = "pip install -e '.[metaworld]'  (or: pip install metaworld==3.0.0)"
+# Meta-World's env names of the two tasks (docs/tasks.md §4.6: the "-v3" envs, v2 reward by default).
+ENV_NAMES = {"faucet_open": "faucet-open-v3", "faucet_close": "faucet-close-v3"}
+RENDER_CAMERA = "corner2"  # the camera of the authors' wrapper (docs/tasks.md §4.6)
+_FLOAT32 = np.float32
+_FRAME = 18  # hand 3 + gripper 1 + handle 3 + quaternion 4 + padding 7 (one frame of the observation)
+
+
+def _import_metaworld():
+    """``metaworld``, after checking its version and fixing its weld reset for this MuJoCo."""
+    try:
+        version = importlib.metadata.version("metaworld")
+    except importlib.metadata.PackageNotFoundError:
+        raise ConfigError(f"the Meta-World tasks need the optional extra, which is not installed: {INSTALL_HINT}") from None
+    if version != SUPPORTED_VERSION:
+        raise ConfigError(f"metaworld {version} is installed, but dvfb's Meta-World tasks are checked against "
+                          f"metaworld {SUPPORTED_VERSION} only: {INSTALL_HINT}")
+    import mujoco
+    import metaworld
+    from metaworld import sawyer_xyz_env
+
+    _fix_weld_reset(sawyer_xyz_env.SawyerMocapBase, mujoco)
+    return metaworld
+
+
+# Meta-World's weld reset: anchor (3), relative position (3), relative quaternion (4), torque scale.
+_WELD_RESET = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 5.0])
+
+
+def _fix_weld_reset(mocap_base: type, mujoco) -> None:
+    """Make ``reset_mocap_welds`` write only the 11 parameters it knows (docs/tasks.md §7).
+
+    Applied once, and only where MuJoCo's weld rows are longer than 11 (``mjNEQDATA``); on the
+    MuJoCo that metaworld was written for the original method runs unchanged.
+    """
+    if mujoco.mjNEQDATA <= _WELD_RESET.size or getattr(mocap_base, "_dvfb_weld_fix", False):
+        return
+
+    def reset_mocap_welds(self) -> None:
+        if self.model.nmocap > 0 and self.model.eq_data is not None:
+            for i in range(self.model.eq_data.shape[0]):
+                if self.model.eq_type[i] == mujoco.mjtEq.mjEQ_WELD:
+                    self.model.eq_data[i, : _WELD_RESET.size] = _WELD_RESET
+
+    mocap_base.reset_mocap_welds = reset_mocap_welds
+    mocap_base._dvfb_weld_fix = True
+
+
+metaworld = _import_metaworld()
+
+
+@functools.lru_cache(maxsize=16)
+def test_tasks(task: str, seed: int) -> tuple:
+    """ML1's 50 test tasks of ``task`` built with ``seed`` (cached: building them takes ~1 s)."""
+    return tuple(metaworld.ML1(ENV_NAMES[task], seed=seed).test_tasks)
+
+
+def task_position(mw_task) -> np.ndarray:
+    """The faucet-base position a Meta-World task fixes (its stored random vector)."""
+    return np.asarray(pickle.loads(mw_task.data)["rand_vec"], dtype=np.float64)
+
+
+class MetaWorldGymEnv(gym.Env):
+    """A Meta-World faucet env as an ML1 test-task distribution (docs/tasks.md §4.6).
+
+    Attributes:
+        task_spec: the :class:`TaskSpec` of the task being run.
+        mw_env: the underlying Meta-World env (one instance; tasks are switched at every reset).
+        tasks: ML1's 50 test tasks for this env's seed.
+        task_index: index into ``tasks`` of the episode in progress (None before the first reset).
+        reward_free: if True, ``step`` returns reward 0.0 (the task reward stays in ``info``).
+    """
+
+    metadata = {"render_modes": ["rgb_array"]}
+
+    def __init__(self, task_spec: TaskSpec, seed: int | None = None, reward_free: bool = False,
+                 render_mode: str | None = None, render_size: tuple[int, int] = (240, 320)):
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode={render_mode!r} is not supported; use one of "
+                             f"{self.metadata['render_modes']} or None")
+        self.task_spec = task_spec
+        self.reward_free = bool(reward_free)
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": round(1.0 / task_spec.control_dt)}
+        env_cls = metaworld.env_dict.ALL_V3_ENVIRONMENTS[ENV_NAMES[task_spec.task]]
+        height, width = render_size
+        self.mw_env = env_cls(render_mode=render_mode, camera_name=RENDER_CAMERA if render_mode else None,
+                              height=height, width=width)
+        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(task_spec.obs_dim,), dtype=_FLOAT32)
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(task_spec.action_dim,), dtype=_FLOAT32)
+        self._action_shape = (task_spec.action_dim,)
+        self._reseed(np.random.SeedSequence().entropy % 2**31 if seed is None else int(seed))
+        self.task_index: int | None = None
+        self._step_count = 0
+        self._needs_reset = True
+
+    def _reseed(self, seed: int) -> None:
+        """Everything that depends on the seed: the test-task set and the stream that picks tasks."""
+        self.seed = seed
+        self.tasks = test_tasks(self.task_spec.task, seed)
+        self._task_random = np.random.RandomState(seed)
+
+    # ----------------------------------------------------------------------------------------
+    # Gymnasium API
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Start an episode on a test task drawn uniformly at random. A ``seed`` rebuilds the task
+        set and the draws exactly as an env made with that seed would have them."""
+        super().reset(seed=seed)
+        if seed is not None:
+            self._reseed(seed)
+        obs = self._start(int(self._task_random.randint(len(self.tasks))))
+        return obs.astype(_FLOAT32), {}
+
+    def _start(self, task_index: int) -> np.ndarray:
+        self.task_index = task_index
+        self.mw_env.set_task(self.tasks[task_index])
+        obs, _ = self.mw_env.reset()
+        self._step_count = 0
+        self._needs_reset = False
+        return obs
+
+    def step(self, action):
+        """One control step: returns (obs, reward, terminated=False, truncated, info)."""
+        if self._needs_reset:
+            raise ResetNeeded("call reset() before step() (the episode ended or never started)")
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != self._action_shape:
+            raise ValueError(f"action has shape {action.shape}, expected {self._action_shape}")
+        obs, reward, _, _, info = self.mw_env.step(action)
+        self._step_count += 1
+        truncated = self._step_count >= self.task_spec.episode_length
+        if truncated:
+            self._needs_reset = True
+        task_reward = float(reward)
+        return (obs.astype(_FLOAT32), 0.0 if self.reward_free else task_reward, False, truncated,
+                {"task_reward": task_reward, "success": bool(info["success"])})
+
+    def render(self):
+        """An RGB frame (H, W, 3) from the authors' camera when ``render_mode == "rgb_array"``."""
+        if self.render_mode != "rgb_array":
+            return None
+        return self.mw_env.render()
+
+    def close(self):
+        self.mw_env.close()
+
+    # ----------------------------------------------------------------------------------------
+    # Exact resume (same contract as the DMC envs: dvfb.envs.gym_env)
+
+    def get_rng_state(self) -> dict:
+        """The seed of the task set and the task-drawing stream as plain lists, for a resume checkpoint."""
+        kind, keys, pos, has_gauss, cached = self._task_random.get_state()
+        return {"seed": self.seed, "tasks": [kind, keys.tolist(), int(pos), int(has_gauss), float(cached)]}
+
+    def set_rng_state(self, state: dict) -> None:
+        if set(state) != {"seed", "tasks"}:
+            raise ValueError(f"RNG state has streams {sorted(state)}, this task has ['seed', 'tasks']")
+        if int(state["seed"]) != self.seed:
+            self._reseed(int(state["seed"]))
+        kind, keys, pos, has_gauss, cached = state["tasks"]
+        self._task_random.set_state((kind, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
+
+    def get_episode_state(self) -> dict:
+        """The episode in progress, for a checkpoint taken mid-episode (a signal).
+
+        A task's reset is deterministic, so the episode is the task index plus MuJoCo's integration
+        state, the step count and the previous observation frame that Meta-World stacks.
+        """
+        mujoco = _mujoco()
+        model, data = self.mw_env.model, self.mw_env.data
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        physics = np.empty(mujoco.mj_stateSize(model, spec), dtype=np.float64)
+        mujoco.mj_getState(model, data, physics, spec)
+        return {"task_index": self.task_index, "physics": physics.tolist(), "step_count": self._step_count,
+                "prev_frame": np.asarray(self.mw_env._prev_obs, dtype=np.float64).tolist(),
+                "needs_reset": self._needs_reset, "rng": self.get_rng_state()}
+
+    def set_episode_state(self, state: dict) -> None:
+        mujoco = _mujoco()
+        self.set_rng_state(state["rng"])  # first: it rebuilds the task set of the state's seed
+        if state["task_index"] is not None:
+            self._start(int(state["task_index"]))
+            model, data = self.mw_env.model, self.mw_env.data
+            spec = mujoco.mjtState.mjSTATE_INTEGRATION
+            physics = np.asarray(state["physics"], dtype=np.float64)
+            if physics.shape != (mujoco.mj_stateSize(model, spec),):
+                raise ValueError(f"episode state has {physics.shape[0]} physics values, this task needs "
+                                 f"{mujoco.mj_stateSize(model, spec)}")
+            mujoco.mj_setState(model, data, physics, spec)
+            mujoco.mj_forward(model, data)  # Meta-World reads positions after each step's forward pass
+            self.mw_env._prev_obs = np.asarray(state["prev_frame"], dtype=np.float64)
+            self.mw_env.curr_path_length = self._step_count = int(state["step_count"])
+        self._needs_reset = bool(state["needs_reset"])
+
+    def __repr__(self) -> str:
+        mode = ", reward_free" if self.reward_free else ""
+        return f"<MetaWorldGymEnv {self.task_spec.name}{mode}>"
+
+
+def _mujoco():
+    import mujoco
+
+    return mujoco
+
+
+def make_gym_env(task_spec: TaskSpec, seed: int | None, reward_free: bool, render_mode: str | None):
+    """The factory's entry point for this domain (dvfb.envs.make)."""
+    return MetaWorldGymEnv(task_spec, seed=seed, reward_free=reward_free, render_mode=render_mode)
