@@ -137,6 +137,8 @@ def test_zeroshot_table_cells(walker_runs: Path, tmp_path: Path):
     # The same run reached through two paths (parent and itself) counts once.
     report = make_report([walker_runs, walker_runs / "dvfb_s0"], out, random_files=[random_file])
     assert report.finetune is None
+    # No result carries a success rate (DMC tasks have none), so there is no Table 6.
+    assert report.success_zeroshot is None and not (out / "table6_success.md").exists()
     md = (out / "table1_zeroshot.md").read_text()
     table = md.split("### ")[0]
     assert md_columns(table) == ["dvfb", "dvfb_wo_ce", "fb", "random"]

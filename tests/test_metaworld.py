@@ -107,8 +107,10 @@ def test_gymnasium_registration_matches_make():
     while isinstance(wrapper, gymnasium.Wrapper):
         assert not isinstance(wrapper, gymnasium.wrappers.TimeLimit)
         wrapper = wrapper.env
-    reference = envs.make("metaworld_faucet_close", seed=4)
+    reference = envs.make("metaworld_faucet_close", seed=4, render_mode="rgb_array")
     np.testing.assert_array_equal(env.reset()[0], reference.reset()[0])
+    frame = reference.render()  # the authors' corner view, the right way up
+    assert frame.shape == (240, 320, 3) and frame.dtype == np.uint8 and frame.std() > 0
     for action in random_actions(20, seed=5):
         a, b = env.step(action), reference.step(action)
         np.testing.assert_array_equal(a[0], b[0])
@@ -329,3 +331,77 @@ def test_without_the_extra_the_tasks_are_listed_as_unavailable(tmp_path):
 def test_with_the_extra_the_task_table_marks_nothing_unavailable():
     assert "unavailable" not in envs.format_task_table()
     assert envs.missing_extra("metaworld") is None
+
+
+# ------------------------------------------------------------------------------------------------
+# pre-train -> zero-shot -> fine-tune -> report, through the command line, with tiny budgets
+
+TINY = ["--fb.z-dim", "16", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
+        "--fb.batch-size", "64", "--log-every", "250", "--seed-frames", "250", "--update-every", "4",
+        "--checkpoint-every", "750", "--no-progress"]
+TINY_EXPLORATION = ["--exploration.contrastive-hidden-dim", "32", "--exploration.rnd-rep-dim", "16",
+                    "--exploration.ce-k", "4"]
+FAST_INFERENCE = ["--inference.steps", "300", "--inference.random-action-steps", "100",
+                  "--inference.samples", "300", "--inference.eval-episodes", "2"]
+
+
+def test_pretrain_zeroshot_finetune_and_report_record_success_rates(tmp_path, capsys):
+    from dvfb.cli import main
+
+    runs = tmp_path / "runs"
+    for agent in ("dvfb", "fb"):
+        run = runs / f"{agent}_metaworld_s0"
+        assert main(["pretrain", "--agent", agent, "--domain", "metaworld", "--frames", "750", "--run-dir",
+                     str(run), *TINY, *(TINY_EXPLORATION if agent == "dvfb" else ())]) == 0
+        summary = json.loads((run / "pretrain_summary.json").read_text())
+        assert summary["frames"] == 750 and summary["episodes"] == 3  # 250-step episodes
+        assert main(["zeroshot", str(run), "--task", "all", *FAST_INFERENCE]) == 0
+        out = capsys.readouterr().out
+        assert "success" in out and "metaworld_faucet_close" in out
+        for task in TASKS:
+            result = json.loads((run / "zeroshot" / f"{task}.json").read_text())
+            assert result["eval_episodes"] == 2 and len(result["successes"]) == 2
+            assert all(type(s) is bool for s in result["successes"])
+            assert result["success_rate"] == np.mean(result["successes"])
+            assert 0.0 <= result["mean_return"] <= 10.0 * EPISODE
+    # Fine-tuning evaluations carry success rates too.
+    run = runs / "fb_metaworld_s0"
+    assert main(["finetune", str(run), "--task", "metaworld_faucet_close", *FAST_INFERENCE, "--finetune.frames",
+                 "500", "--finetune.seed-frames", "250", "--finetune.eval-every", "250", "--finetune.eval-episodes",
+                 "1", "--finetune.checkpoint-every", "500", "--no-progress"]) == 0
+    curve = json.loads((run / "finetune" / "metaworld_faucet_close" / "curve.json").read_text())["curve"]
+    assert [p["frames"] for p in curve] == [0, 250, 500]
+    assert all(p["success_rate"] in (0.0, 1.0) and len(p["successes"]) == 1 for p in curve)
+    summary = json.loads((run / "finetune" / "metaworld_faucet_close" / "finetune_summary.json").read_text())
+    assert summary["final_success_rate"] == curve[-1]["success_rate"]
+    # The random policy's floor, and the report's Table 6.
+    random_file = tmp_path / "random_metaworld.json"
+    assert main(["random-policy", "--domain", "metaworld", "--episodes", "2", "--output", str(random_file)]) == 0
+    random_result = json.loads(random_file.read_text())["tasks"]
+    assert set(random_result) == set(TASKS) and all("success_rate" in r for r in random_result.values())
+    report_dir = tmp_path / "report"
+    assert main(["report", str(runs), "--out", str(report_dir), "--random", str(random_file)]) == 0
+    table6 = (report_dir / "table6_success.md").read_text()
+    assert "Table 6: zero-shot success rate" in table6 and "after fine-tuning" in table6
+    rows = [line for line in table6.splitlines() if line.startswith("| metaworld |")]
+    assert len(rows) == 3 + 3  # each table: 2 tasks + average (a task without a run is a gap)
+    zero_shot = {line.split("|")[2].strip(): line for line in rows[:3]}
+    dvfb_open = json.loads((runs / "dvfb_metaworld_s0" / "zeroshot" / "metaworld_faucet_open.json").read_text())
+    assert f"{dvfb_open['success_rate']:.2f}" == zero_shot["metaworld_faucet_open"].split("|")[3].strip()
+    csv_lines = (report_dir / "table6_success_zeroshot.csv").read_text().splitlines()
+    assert csv_lines[0].startswith("domain,task,dvfb_mean") and len(csv_lines) == 4
+    assert "Table 6" in (report_dir / "report.md").read_text()
+    # Returns still make Table 1 (Meta-World rows), and DMC-only reports get no Table 6 (tests/test_analysis.py).
+    assert "metaworld_faucet_open" in (report_dir / "table1_zeroshot.md").read_text()
+    # The analyses that render or read positions work on the faucet too.
+    import imageio.v3 as iio
+
+    dvfb_run = runs / "dvfb_metaworld_s0"
+    gif = tmp_path / "faucet.gif"
+    assert main(["video", str(dvfb_run), "--task", "metaworld_faucet_open", "--max-steps", "8", "--frame-skip", "4",
+                 "--height", "48", "--width", "64", "--out", str(gif)]) == 0
+    frames = iio.imread(gif)
+    assert frames.shape == (3, 48, 64, 3) and frames.std() > 0
+    assert main(["analyze-exploration", str(dvfb_run), "--skills", "2", "--repeats", "1", "--steps", "20"]) == 0
+    exploration = json.loads((dvfb_run / "analysis" / "exploration.json").read_text())
+    assert exploration["coordinates"] == ["hand_x", "hand_y"] and exploration["coverage_cells"] >= 1

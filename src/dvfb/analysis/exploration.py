@@ -12,6 +12,7 @@ cheetah
 quadruped            torso x, torso y (``data.xpos['torso']``)   x, y; path   0.25 m
 point_mass_maze      root_x, root_y (``data.qpos``)              x, y; path   0.02 (a 30 x 30
                                                                               grid over the maze)
+metaworld            hand x, hand y (``data.body('hand').xpos``)  x, y; path   0.02 m
 ===================  ==========================================  ===========  ==================
 
 Actions are **rollout samples** of ``pi(s, z)`` (sigma 0.2, §3.3) by default -- the behaviour that
@@ -43,24 +44,29 @@ ACTION_MODES = ("rollout", "mean")
 @dataclass(frozen=True)
 class Coordinates:
     names: tuple[str, ...]
-    read: Callable[[object], tuple[float, ...]]  # physics -> one value per name
+    read: Callable[[object], tuple[float, ...]]  # the (unwrapped) env -> one value per name
     cell_size: float
     planar: bool  # True: the first two coordinates are a horizontal plane (x, y)
 
 
-def _torso_xz(physics) -> tuple[float, float]:
-    x, _, z = physics.named.data.xpos["torso"]
+def _torso_xz(env) -> tuple[float, float]:
+    x, _, z = env.physics.named.data.xpos["torso"]
     return float(x), float(z)
 
 
-def _torso_xy(physics) -> tuple[float, float]:
-    x, y, _ = physics.named.data.xpos["torso"]
+def _torso_xy(env) -> tuple[float, float]:
+    x, y, _ = env.physics.named.data.xpos["torso"]
     return float(x), float(y)
 
 
-def _maze_xy(physics) -> tuple[float, float]:
-    qpos = physics.named.data.qpos
+def _maze_xy(env) -> tuple[float, float]:
+    qpos = env.physics.named.data.qpos
     return float(qpos["root_x"][0]), float(qpos["root_y"][0])
+
+
+def _hand_xy(env) -> tuple[float, float]:
+    x, y, _ = env.mw_env.data.body("hand").xpos
+    return float(x), float(y)
 
 
 COORDINATES: dict[str, Coordinates] = {
@@ -69,6 +75,7 @@ COORDINATES: dict[str, Coordinates] = {
     "cheetah": Coordinates(("torso_x", "torso_z"), _torso_xz, 0.1, False),
     "quadruped": Coordinates(("torso_x", "torso_y"), _torso_xy, 0.25, True),
     "point_mass_maze": Coordinates(("x", "y"), _maze_xy, 0.02, True),
+    "metaworld": Coordinates(("hand_x", "hand_y"), _hand_xy, 0.02, True),
 }
 
 
@@ -120,15 +127,15 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
     if zs is None:
         raise AnalysisError(f"analyze-exploration compares skills; {config.agent!r} has a single policy")
     env = envs.make(config.domain, seed=seed, reward_free=True)
-    physics = env.unwrapped.physics
+    source = env.unwrapped
     positions = np.full((skills, repeats, steps + 1, len(coords.names)), np.nan)
     for k in range(skills):
         for r in range(repeats):
             obs, _ = env.reset()
-            positions[k, r, 0] = coords.read(physics)
+            positions[k, r, 0] = coords.read(source)
             for t in range(steps):
                 obs, _, terminated, truncated, _ = env.step(agent.act(obs, zs[k], explore=actions == "rollout"))
-                positions[k, r, t + 1] = coords.read(physics)
+                positions[k, r, t + 1] = coords.read(source)
                 if terminated:
                     break  # never happens in DMC; the remaining steps would stay NaN
     recorded = positions[~np.isnan(positions).any(-1)]

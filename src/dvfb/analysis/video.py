@@ -30,9 +30,10 @@ from dvfb.analysis.common import AnalysisError, read_json
 from dvfb.errors import DvfbError
 
 FORMATS = (".gif", ".mp4")
-# Camera per domain: the tracking side views of the stock models, the maze's top-down view.
+# Camera per domain: the tracking side views of the stock models, the maze's top-down view, and
+# the authors' corner view for Meta-World (docs/tasks.md §4.6).
 DEFAULT_CAMERAS = {"walker": "side", "hopper": "cam0", "cheetah": "side", "quadruped": "y",
-                   "point_mass_maze": "fixed"}
+                   "point_mass_maze": "fixed", "metaworld": "corner2"}
 
 
 class RenderError(AnalysisError):
@@ -66,14 +67,20 @@ def check_output(path: Path) -> None:
 
 
 class Renderer:
-    """Frames of one environment's physics; failures become :class:`RenderError`."""
+    """Frames of one environment (a dm_control task's physics, or an env with its own
+    ``render_frame``: Meta-World); failures become :class:`RenderError`."""
 
     def __init__(self, env, height: int, width: int, camera: str | int):
-        self.physics = env.unwrapped.physics
+        unwrapped = env.unwrapped
+        self.physics = getattr(unwrapped, "physics", None)
+        self.env = None if self.physics is not None else unwrapped
         self.height, self.width = height, width
-        model = self.physics.model
         if isinstance(camera, str) and not camera.lstrip("-").isdigit():
-            names = [model.id2name(i, "camera") for i in range(model.ncam)]
+            if self.physics is not None:
+                model = self.physics.model
+                names = [model.id2name(i, "camera") for i in range(model.ncam)]
+            else:
+                names = unwrapped.camera_names
             if camera not in names:
                 raise AnalysisError(f"unknown camera {camera!r}; this model has {', '.join(names) or 'none'} "
                                     "(or give a camera id, -1 = free camera)")
@@ -83,6 +90,8 @@ class Renderer:
 
     def frame(self) -> np.ndarray:
         try:
+            if self.env is not None:
+                return self.env.render_frame(self.height, self.width, self.camera)
             return self.physics.render(height=self.height, width=self.width, camera_id=self.camera)
         except DvfbError:
             raise
@@ -92,7 +101,10 @@ class Renderer:
     def close(self) -> None:
         # Freeing the GL context now avoids dm_control's noisy clean-up at interpreter exit.
         try:
-            self.physics.free()
+            if self.env is not None:
+                self.env.close()
+            else:
+                self.physics.free()
         except Exception:  # noqa: BLE001
             pass
 

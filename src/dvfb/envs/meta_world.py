@@ -39,6 +39,9 @@ INSTALL_HINT = "pip install -e '.[metaworld]'  (or: pip install metaworld==3.0.0
 # Meta-World's env names of the two tasks (docs/tasks.md §4.6: the "-v3" envs, v2 reward by default).
 ENV_NAMES = {"faucet_open": "faucet-open-v3", "faucet_close": "faucet-close-v3"}
 RENDER_CAMERA = "corner2"  # the camera of the authors' wrapper (docs/tasks.md §4.6)
+# Meta-World's corner cameras were set up for mujoco-py, whose images came bottom row first; MuJoCo's
+# renderer gives the top row first, so their images are flipped back to look the same.
+_FLIPPED_CAMERAS = ("corner", "corner2", "corner3")
 _FLOAT32 = np.float32
 _FRAME = 18  # hand 3 + gripper 1 + handle 3 + quaternion 4 + padding 7 (one frame of the observation)
 
@@ -120,9 +123,9 @@ class MetaWorldGymEnv(gym.Env):
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": round(1.0 / task_spec.control_dt)}
         env_cls = metaworld.env_dict.ALL_V3_ENVIRONMENTS[ENV_NAMES[task_spec.task]]
-        height, width = render_size
-        self.mw_env = env_cls(render_mode=render_mode, camera_name=RENDER_CAMERA if render_mode else None,
-                              height=height, width=width)
+        self.render_size = render_size
+        self.mw_env = env_cls()
+        self._renderers: dict[tuple[int, int], Any] = {}
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(task_spec.obs_dim,), dtype=_FLOAT32)
         self.action_space = spaces.Box(-1.0, 1.0, shape=(task_spec.action_dim,), dtype=_FLOAT32)
         self._action_shape = (task_spec.action_dim,)
@@ -177,9 +180,28 @@ class MetaWorldGymEnv(gym.Env):
         """An RGB frame (H, W, 3) from the authors' camera when ``render_mode == "rgb_array"``."""
         if self.render_mode != "rgb_array":
             return None
-        return self.mw_env.render()
+        return self.render_frame(*self.render_size, RENDER_CAMERA)
+
+    @property
+    def camera_names(self) -> list[str]:
+        model = self.mw_env.model
+        return [model.camera(i).name for i in range(model.ncam)]
+
+    def render_frame(self, height: int, width: int, camera: str | int = RENDER_CAMERA) -> np.ndarray:
+        """An RGB frame (H, W, 3) of the current state from a named camera (or an id; -1 = free)."""
+        mujoco = _mujoco()
+        renderer = self._renderers.get((height, width))
+        if renderer is None:
+            renderer = self._renderers[(height, width)] = mujoco.Renderer(self.mw_env.model, height, width)
+        renderer.update_scene(self.mw_env.data, camera=camera)
+        frame = renderer.render()
+        name = camera if isinstance(camera, str) else (self.camera_names[camera] if camera >= 0 else "")
+        return np.ascontiguousarray(frame[::-1]) if name in _FLIPPED_CAMERAS else frame
 
     def close(self):
+        for renderer in self._renderers.values():
+            renderer.close()
+        self._renderers.clear()
         self.mw_env.close()
 
     # ----------------------------------------------------------------------------------------
