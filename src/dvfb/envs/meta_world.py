@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import functools
 import importlib.metadata
-import pickle
 from typing import Any
 
 import gymnasium as gym
@@ -43,7 +42,6 @@ RENDER_CAMERA = "corner2"  # the camera of the authors' wrapper (docs/tasks.md Â
 # renderer gives the top row first, so their images are flipped back to look the same.
 _FLIPPED_CAMERAS = ("corner", "corner2", "corner3")
 _FLOAT32 = np.float32
-_FRAME = 18  # hand 3 + gripper 1 + handle 3 + quaternion 4 + padding 7 (one frame of the observation)
 
 
 def _import_metaworld():
@@ -90,14 +88,9 @@ metaworld = _import_metaworld()
 
 
 @functools.lru_cache(maxsize=16)
-def test_tasks(task: str, seed: int) -> tuple:
-    """ML1's 50 test tasks of ``task`` built with ``seed`` (cached: building them takes ~1 s)."""
+def ml1_test_tasks(task: str, seed: int) -> tuple:
+    """ML1's 50 test tasks of ``task`` built with ``seed`` (cached: ML1 takes ~2 s to build)."""
     return tuple(metaworld.ML1(ENV_NAMES[task], seed=seed).test_tasks)
-
-
-def task_position(mw_task) -> np.ndarray:
-    """The faucet-base position a Meta-World task fixes (its stored random vector)."""
-    return np.asarray(pickle.loads(mw_task.data)["rand_vec"], dtype=np.float64)
 
 
 class MetaWorldGymEnv(gym.Env):
@@ -137,7 +130,7 @@ class MetaWorldGymEnv(gym.Env):
     def _reseed(self, seed: int) -> None:
         """Everything that depends on the seed: the test-task set and the stream that picks tasks."""
         self.seed = seed
-        self.tasks = test_tasks(self.task_spec.task, seed)
+        self.tasks = ml1_test_tasks(self.task_spec.task, seed)
         self._task_random = np.random.RandomState(seed)
 
     # ----------------------------------------------------------------------------------------
