@@ -312,6 +312,11 @@ def test_without_the_extra_the_tasks_are_listed_as_unavailable(tmp_path):
         "except ConfigError as exc:\n"
         "    print('ERROR', exc)\n"
         "e = envs.make('walker_walk', seed=0); e.reset(); e.step(e.action_space.sample())\n"
+        "from dvfb.sweep.spec import SweepConfig, check\n"
+        "try:\n"
+        "    check(SweepConfig(agents=['fb'], domains=['walker', 'metaworld'], seeds=[0]))\n"
+        "except ConfigError as exc:\n"
+        "    print('SWEEP', exc)\n"
         "from dvfb.cli import main\n"
         f"sys.exit(main(['pretrain', '--agent', 'fb', '--domain', 'metaworld', '--preset', 'small', "
         f"'--frames', '10000', '--run-dir', {str(run_dir)!r}]))\n"))
@@ -322,6 +327,8 @@ def test_without_the_extra_the_tasks_are_listed_as_unavailable(tmp_path):
     assert any("unavailable:" in line and "pip install -e '.[metaworld]'" in line for line in lines)
     error = [line for line in lines if line.startswith("ERROR")]
     assert len(error) == 1 and "pip install -e '.[metaworld]'" in error[0]
+    sweep = [line for line in lines if line.startswith("SWEEP")]  # refused before any cell starts
+    assert len(sweep) == 1 and "pip install -e '.[metaworld]'" in sweep[0]
     # The CLI: one line naming the problem and the install command, nothing created.
     stderr = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(stderr) == 1 and "metaworld" in stderr[0] and "pip install" in stderr[0], result.stderr
