@@ -409,6 +409,7 @@ def test_pretrain_zeroshot_finetune_and_report_record_success_rates(tmp_path, ca
                  "--height", "48", "--width", "64", "--out", str(gif)]) == 0
     frames = iio.imread(gif)
     assert frames.shape == (3, 48, 64, 3) and frames.std() > 0
-    assert main(["analyze-exploration", str(dvfb_run), "--skills", "2", "--repeats", "1", "--steps", "20"]) == 0
+    assert main(["analyze-exploration", str(dvfb_run), "--skills", "2", "--repeats", "1"]) == 0
     exploration = json.loads((dvfb_run / "analysis" / "exploration.json").read_text())
     assert exploration["coordinates"] == ["hand_x", "hand_y"] and exploration["coverage_cells"] >= 1
+    assert exploration["steps"] == EPISODE  # by default one whole episode

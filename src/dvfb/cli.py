@@ -508,7 +508,8 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
     p.add_argument("run", help="pre-training run directory")
     p.add_argument("--skills", type=int, default=10, help="skills K drawn from the prior (default: %(default)s)")
     p.add_argument("--repeats", type=int, default=3, help="runs R per skill (default: %(default)s)")
-    p.add_argument("--steps", type=int, default=1000, help="steps per run, at most 1000 (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="steps per run, at most the episode length (default: one episode: 1000, Meta-World 250)")
     p.add_argument("--actions", default="rollout", choices=("rollout", "mean"),
                    help="rollout samples (sigma 0.2, as in pre-training) or mean actions (default: %(default)s)")
     p.add_argument("--cell-size", type=float, default=None, help="coverage grid cell size (default: per domain)")

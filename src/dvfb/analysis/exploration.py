@@ -1,8 +1,8 @@
 """Exploration analysis (paper Fig. 2): where do the pre-trained skills go, and how much do they cover?
 
 ``dvfb analyze-exploration RUN`` draws K skills ``z ~ p(z)`` (docs/methods.md §5.1) from the
-pre-trained agent, runs each R times for S steps in the domain's reward-free pre-training
-environment, and records physical positions at every step:
+pre-trained agent, runs each R times for S steps (default: one episode) in the domain's reward-free
+pre-training environment, and records physical positions at every step:
 
 ===================  ==========================================  ===========  ==================
 domain               recorded coordinates                        plotted      default cell size
@@ -91,7 +91,7 @@ def coverage(points: np.ndarray, cell_size: float) -> int:
     return int(np.unique(cells, axis=0).shape[0])
 
 
-def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int = 3, steps: int = 1000,
+def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int = 3, steps: int | None = None,
                         actions: str = "rollout", cell_size: float | None = None, snapshot: int | None = None,
                         seed: int | None = None, overwrite: bool = False, device: str | None = None) -> dict:
     """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary."""
@@ -101,11 +101,12 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
 
     if actions not in ACTION_MODES:
         raise AnalysisError(f"--actions must be one of {', '.join(ACTION_MODES)}, got {actions!r}")
-    for name, value in (("--skills", skills), ("--repeats", repeats), ("--steps", steps)):
+    for name, value in (("--skills", skills), ("--repeats", repeats), ("--steps", 1 if steps is None else steps)):
         if value < 1:
             raise AnalysisError(f"{name} must be at least 1")
     run, config = open_pretrained_run(run_path)
     episode_length = envs.TASKS[envs.pretrain_task(config.domain)].episode_length
+    steps = episode_length if steps is None else steps  # by default a whole episode
     if steps > episode_length:
         raise AnalysisError(f"--steps must be at most the episode length ({episode_length})")
     if config.domain not in COORDINATES:
