@@ -23,6 +23,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
+from dvfb.envs._common import mujoco_state, random_state_to_list, set_mujoco_state, set_random_state
 from dvfb.envs.registry import TaskSpec
 
 _FLOAT64 = np.float64
@@ -139,18 +140,14 @@ class DMCGymEnv(gym.Env):
         the uninterrupted one. (Physics state is not included: checkpoints are taken at episode
         ends, where the next reset overwrites it.)
         """
-        state = {}
-        for name, random in self._task_random_states().items():
-            kind, keys, pos, has_gauss, cached = random.get_state()
-            state[name] = [kind, keys.tolist(), int(pos), int(has_gauss), float(cached)]
-        return state
+        return {name: random_state_to_list(random) for name, random in self._task_random_states().items()}
 
     def set_rng_state(self, state: dict) -> None:
         randoms = self._task_random_states()
         if set(state) != set(randoms):
             raise ValueError(f"RNG state has streams {sorted(state)}, this task has {sorted(randoms)}")
-        for name, (kind, keys, pos, has_gauss, cached) in state.items():
-            randoms[name].set_state((kind, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
+        for name, values in state.items():
+            set_random_state(randoms[name], values)
 
     def get_episode_state(self) -> dict:
         """The state of the episode in progress, for a checkpoint taken mid-episode (a signal).
@@ -160,24 +157,14 @@ class DMCGymEnv(gym.Env):
         :meth:`set_episode_state` into an env of the same task, the episode continues exactly as
         it would have (tests/test_envs.py).
         """
-        mujoco, spec = _mujoco_state_api()
-        model, data = self.physics.model.ptr, self.physics.data.ptr
-        state = np.empty(mujoco.mj_stateSize(model, spec), dtype=_FLOAT64)
-        mujoco.mj_getState(model, data, state, spec)
-        return {"physics": state.tolist(), "step_count": int(self.dmc_env._step_count),
-                "needs_reset": bool(self._needs_reset), "rng": self.get_rng_state()}
+        return {"physics": mujoco_state(self.physics.model.ptr, self.physics.data.ptr),
+                "step_count": int(self.dmc_env._step_count), "needs_reset": bool(self._needs_reset),
+                "rng": self.get_rng_state()}
 
     def set_episode_state(self, state: dict) -> None:
-        mujoco, spec = _mujoco_state_api()
-        model, data = self.physics.model.ptr, self.physics.data.ptr
-        physics = np.asarray(state["physics"], dtype=_FLOAT64)
-        if physics.shape != (mujoco.mj_stateSize(model, spec),):
-            raise ValueError(f"episode state has {physics.shape[0]} physics values, this task needs "
-                             f"{mujoco.mj_stateSize(model, spec)}")
-        mujoco.mj_setState(model, data, physics, spec)
         # dm_control steps Euler models as mj_step2 then mj_step1, so the derived quantities of
         # the current state (what mj_step1 computes) must be up to date before the next step.
-        mujoco.mj_step1(model, data)
+        set_mujoco_state(self.physics.model.ptr, self.physics.data.ptr, state["physics"], recompute="step1")
         self.dmc_env._step_count = int(state["step_count"])
         self.dmc_env._reset_next_step = bool(state["needs_reset"])
         self._needs_reset = bool(state["needs_reset"])
@@ -228,15 +215,6 @@ class DMCGymEnv(gym.Env):
     def __repr__(self) -> str:
         mode = ", reward_free" if self.reward_free else ""
         return f"<DMCGymEnv {self.task_spec.name}{mode}>"
-
-
-def _mujoco_state_api():
-    """``mujoco`` and the state spec of a mid-episode checkpoint: everything MuJoCo needs to
-    continue an episode bit for bit. Imported here, not at the top: mujoco's import reads MUJOCO_GL,
-    whose errors the rendering code reports with advice (dvfb.analysis.video)."""
-    import mujoco
-
-    return mujoco, mujoco.mjtState.mjSTATE_INTEGRATION
 
 
 def reseed_task(task, seed: int) -> None:

@@ -30,6 +30,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
+from dvfb.envs._common import mujoco_state, random_state_to_list, set_mujoco_state, set_random_state
 from dvfb.envs.registry import TaskSpec
 from dvfb.errors import ConfigError
 
@@ -182,7 +183,8 @@ class MetaWorldGymEnv(gym.Env):
 
     def render_frame(self, height: int, width: int, camera: str | int = RENDER_CAMERA) -> np.ndarray:
         """An RGB frame (H, W, 3) of the current state from a named camera (or an id; -1 = free)."""
-        mujoco = _mujoco()
+        import mujoco  # late, as in dvfb.envs._common: its import reads MUJOCO_GL
+
         renderer = self._renderers.get((height, width))
         if renderer is None:
             renderer = self._renderers[(height, width)] = mujoco.Renderer(self.mw_env.model, height, width)
@@ -202,16 +204,14 @@ class MetaWorldGymEnv(gym.Env):
 
     def get_rng_state(self) -> dict:
         """The seed of the task set and the task-drawing stream as plain lists, for a resume checkpoint."""
-        kind, keys, pos, has_gauss, cached = self._task_random.get_state()
-        return {"seed": self.seed, "tasks": [kind, keys.tolist(), int(pos), int(has_gauss), float(cached)]}
+        return {"seed": self.seed, "tasks": random_state_to_list(self._task_random)}
 
     def set_rng_state(self, state: dict) -> None:
         if set(state) != {"seed", "tasks"}:
             raise ValueError(f"RNG state has streams {sorted(state)}, this task has ['seed', 'tasks']")
         if int(state["seed"]) != self.seed:
             self._reseed(int(state["seed"]))
-        kind, keys, pos, has_gauss, cached = state["tasks"]
-        self._task_random.set_state((kind, np.asarray(keys, dtype=np.uint32), pos, has_gauss, cached))
+        set_random_state(self._task_random, state["tasks"])
 
     def get_episode_state(self) -> dict:
         """The episode in progress, for a checkpoint taken mid-episode (a signal).
@@ -219,28 +219,15 @@ class MetaWorldGymEnv(gym.Env):
         A task's reset is deterministic, so the episode is the task index plus MuJoCo's integration
         state, the step count and the previous observation frame that Meta-World stacks.
         """
-        mujoco = _mujoco()
-        model, data = self.mw_env.model, self.mw_env.data
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
-        physics = np.empty(mujoco.mj_stateSize(model, spec), dtype=np.float64)
-        mujoco.mj_getState(model, data, physics, spec)
-        return {"task_index": self.task_index, "physics": physics.tolist(), "step_count": self._step_count,
-                "prev_frame": np.asarray(self.mw_env._prev_obs, dtype=np.float64).tolist(),
-                "needs_reset": self._needs_reset, "rng": self.get_rng_state()}
+        return {"task_index": self.task_index, "physics": mujoco_state(self.mw_env.model, self.mw_env.data),
+                "step_count": self._step_count, "needs_reset": self._needs_reset, "rng": self.get_rng_state(),
+                "prev_frame": np.asarray(self.mw_env._prev_obs, dtype=np.float64).tolist()}
 
     def set_episode_state(self, state: dict) -> None:
-        mujoco = _mujoco()
         self.set_rng_state(state["rng"])  # first: it rebuilds the task set of the state's seed
         if state["task_index"] is not None:
             self._start(int(state["task_index"]))
-            model, data = self.mw_env.model, self.mw_env.data
-            spec = mujoco.mjtState.mjSTATE_INTEGRATION
-            physics = np.asarray(state["physics"], dtype=np.float64)
-            if physics.shape != (mujoco.mj_stateSize(model, spec),):
-                raise ValueError(f"episode state has {physics.shape[0]} physics values, this task needs "
-                                 f"{mujoco.mj_stateSize(model, spec)}")
-            mujoco.mj_setState(model, data, physics, spec)
-            mujoco.mj_forward(model, data)  # Meta-World reads positions after each step's forward pass
+            set_mujoco_state(self.mw_env.model, self.mw_env.data, state["physics"], recompute="forward")
             self.mw_env._prev_obs = np.asarray(state["prev_frame"], dtype=np.float64)
             self.mw_env.curr_path_length = self._step_count = int(state["step_count"])
         self._needs_reset = bool(state["needs_reset"])
@@ -248,12 +235,6 @@ class MetaWorldGymEnv(gym.Env):
     def __repr__(self) -> str:
         mode = ", reward_free" if self.reward_free else ""
         return f"<MetaWorldGymEnv {self.task_spec.name}{mode}>"
-
-
-def _mujoco():
-    import mujoco
-
-    return mujoco
 
 
 def make_gym_env(task_spec: TaskSpec, seed: int | None, reward_free: bool, render_mode: str | None):
