@@ -230,14 +230,10 @@ def cmd_random_policy(args: argparse.Namespace) -> int:
     from dvfb.runs import write_json_atomic
     from dvfb.workflows.zeroshot import random_policy_evaluation
 
-    if args.domain not in envs.DOMAINS:
-        raise ConfigError(f"unknown domain {args.domain!r}; choose one of {', '.join(envs.DOMAINS)}")
+    envs.check_domain(args.domain)
     output = Path(args.output) if args.output else None
     if output is not None and output.exists() and not args.overwrite:
         raise ConfigError(f"{output} exists; pass --overwrite to replace it")
-    missing = envs.missing_extra(args.domain)
-    if missing:
-        raise ConfigError(missing)
     results = {}
     for task in envs.tasks_of_domain(args.domain):
         results[task] = random_policy_evaluation(task, args.episodes, seed=args.seed).summary()

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from dvfb.envs.registry import domain_module, missing_extra, resolve_task
-from dvfb.errors import ConfigError
+from dvfb.envs.registry import check_domain, domain_module, resolve_task
 
 
 def make(
@@ -32,9 +31,7 @@ def make(
             whose optional extra is not installed (the message says how to install it).
     """
     task_spec = resolve_task(name, reward_free=reward_free)
-    missing = missing_extra(task_spec.name)
-    if missing:
-        raise ConfigError(missing)
+    check_domain(task_spec.domain)  # its optional extra may be missing
     module = domain_module(task_spec.domain)
     if hasattr(module, "make_gym_env"):  # a domain with its own front end (Meta-World)
         return module.make_gym_env(task_spec, seed, reward_free, render_mode)

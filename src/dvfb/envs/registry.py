@@ -100,17 +100,29 @@ DOMAINS: dict[str, str] = {
 """Domain -> the full name of its reward-free pre-training task (docs/tasks.md §5, authors' column)."""
 
 
+def _known_domain(domain: str) -> None:
+    if domain not in DOMAINS:
+        raise ConfigError(f"unknown domain {domain!r}; choose one of {', '.join(DOMAINS)}")
+
+
+def check_domain(domain: str) -> None:
+    """ConfigError with one line unless ``domain`` is known and can be built here (its optional
+    extra, if any, installed): what a run checks before it creates anything."""
+    _known_domain(domain)
+    missing = missing_extra(domain)
+    if missing:
+        raise ConfigError(missing)
+
+
 def tasks_of_domain(domain: str) -> list[str]:
     """Full names of the tasks of ``domain``, in registry order. Raises ConfigError if unknown."""
-    if domain not in DOMAINS:
-        raise ConfigError(f"unknown domain {domain!r}; valid domains: {', '.join(DOMAINS)}")
+    _known_domain(domain)
     return [name for name, spec in TASKS.items() if spec.domain == domain]
 
 
 def pretrain_task(domain: str) -> str:
     """The pre-training task of ``domain`` (docs/tasks.md §5). Raises ConfigError if unknown."""
-    if domain not in DOMAINS:
-        raise ConfigError(f"unknown domain {domain!r}; valid domains: {', '.join(DOMAINS)}")
+    _known_domain(domain)
     return DOMAINS[domain]
 
 

@@ -266,11 +266,7 @@ def check(config: SweepConfig) -> None:
     for agent in config.agents:
         _run_config_class(agent)
     for domain in config.domains:
-        if domain not in envs.DOMAINS:
-            raise ConfigError(f"unknown domain {domain!r}; choose one of {', '.join(envs.DOMAINS)}")
-        missing = envs.missing_extra(domain)  # before any job starts, not in every cell
-        if missing:
-            raise ConfigError(missing)
+        envs.check_domain(domain)  # unknown, or its extra missing: before any job starts
     unknown = [p for p in config.phases if p not in PHASES]
     if unknown:
         raise ConfigError(f"unknown phase(s) {', '.join(unknown)}; choose from {', '.join(PHASES)}")

@@ -174,6 +174,54 @@ class StopSignals:
         return signal.Signals(self.received).name if self.received is not None else ""
 
 
+class ResumeCheckpoints:
+    """When a training loop writes its resume checkpoints, the same for pre-training and fine-tuning.
+
+    * At an episode end, once ``every`` steps have passed since the last checkpoint, and at the
+      last step (:meth:`episode_end`).
+    * On SIGTERM / SIGINT (:class:`StopSignals`): after the current step, a checkpoint (mid-episode
+      if need be) unless one was just written, then :class:`~dvfb.errors.RunInterrupted`
+      (:meth:`after_step`).
+
+    Every checkpoint flushes the metric window first, so a non-finite loss is never checkpointed.
+    ``save(mid_episode)`` writes one; ``last`` is the step of the newest (None: none yet), which
+    failures report (:func:`reported_failures`). Use as ``with checkpoints: <loop>``.
+    """
+
+    def __init__(self, save: Callable[[bool], None], window: MetricWindow, every: int, total: int, what: str,
+                 run_path: Path, last: int | None = None):
+        self.save, self.window, self.every, self.total = save, window, every, total
+        self.what, self.run_path, self.last = what, run_path, last
+        self.stop = StopSignals()
+        self._guard = contextlib.ExitStack()
+
+    def __enter__(self) -> ResumeCheckpoints:
+        self._guard.enter_context(self.stop)
+        self._guard.enter_context(reported_failures(self.what, self.run_path, lambda: self.last))
+        return self
+
+    def __exit__(self, *exc_info):
+        return self._guard.__exit__(*exc_info)
+
+    def _write(self, step: int, mid_episode: bool) -> None:
+        self.window.flush()
+        self.save(mid_episode)
+        self.last = step
+
+    def episode_end(self, step: int) -> None:
+        if step - (self.last or 0) >= self.every or step >= self.total:
+            self._write(step, mid_episode=False)
+
+    def after_step(self, step: int, mid_episode: bool) -> None:
+        if self.stop.received is None or step >= self.total:
+            return
+        if self.last != step:
+            self._write(step, mid_episode)
+        else:
+            self.window.flush()
+        raise interrupted(self.stop, self.what, step, self.total, self.run_path)
+
+
 def notify(message: str) -> None:
     """A one-line status message of a run on stderr (memory estimate, resume point, progress)."""
     print(message, file=sys.stderr, flush=True)
@@ -270,11 +318,6 @@ class Progress:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
-
-
-def progress_bar(total: int, initial: int, desc: str, enabled: bool | None = None) -> Progress:
-    """A frames progress display (see :class:`Progress`)."""
-    return Progress(total, initial, desc, enabled)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -41,15 +41,13 @@ from dvfb.runs import (
 )
 from dvfb.workflows.common import (
     MetricWindow,
-    StopSignals,
+    Progress,
+    ResumeCheckpoints,
     check_action,
-    interrupted,
-    notify,
-    reported_failures,
     check_task_in_domain,
     load_pretrained_agent,
+    notify,
     open_pretrained_run,
-    progress_bar,
     restore_rng_state,
     rng_state,
     seed_everything,
@@ -211,8 +209,7 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
     z_host = None if z is None else z.cpu().numpy()  # the skill is fixed: copied to the host once
     needs = finetuner.replay_needs()
     action_dim = agent.action_dim
-    bar = progress_bar(cfg.frames, step, f"finetune {task}", progress)
-    last_checkpoint = step if state is not None else None
+    bar = Progress(cfg.frames, step, f"finetune {task}", progress)
 
     def save_resume(mid_episode: bool = False) -> None:
         checkpoint = {
@@ -224,9 +221,10 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
             checkpoint["episode_state"] = {"env": env.unwrapped.get_episode_state(), "obs": torch.as_tensor(obs)}
         save_checkpoint(ft_run, checkpoint, f"resume_{step}")
 
-    stop = StopSignals()
+    checkpoints = ResumeCheckpoints(save_resume, window, cfg.checkpoint_every, cfg.frames, "fine-tuning",
+                                    ft_run.path, last=step if state is not None else None)
     try:
-        with stop, reported_failures("fine-tuning", ft_run.path, lambda: last_checkpoint):
+        with checkpoints:
             while step < cfg.frames:
                 if episode_start:
                     obs, _ = env.reset()
@@ -253,16 +251,8 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
                     _write_curve(ft_run, run_config, curve, inference_info, z)
                 if terminated or truncated:
                     episode_start = True
-                    if step - (last_checkpoint or 0) >= cfg.checkpoint_every or step >= cfg.frames:
-                        window.flush()
-                        save_resume()
-                        last_checkpoint = step
-                if stop.received is not None and step < cfg.frames:
-                    window.flush()
-                    if last_checkpoint != step:
-                        save_resume(mid_episode=not episode_start)
-                        last_checkpoint = step
-                    raise interrupted(stop, "fine-tuning", step, cfg.frames, ft_run.path)
+                    checkpoints.episode_end(step)
+                checkpoints.after_step(step, mid_episode=not episode_start)
     finally:
         bar.close()
         logger.close()

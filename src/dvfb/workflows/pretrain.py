@@ -47,14 +47,12 @@ from dvfb.runs import (
 )
 from dvfb.workflows.common import (
     MetricWindow,
-    StopSignals,
+    Progress,
+    ResumeCheckpoints,
     check_action,
     check_memory,
-    interrupted,
     learner_state_bytes,
     notify,
-    progress_bar,
-    reported_failures,
     restore_rng_state,
     rng_state,
     seed_everything,
@@ -100,8 +98,7 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
     if resume and overwrite:
         raise ConfigError("--resume and --overwrite contradict each other: --resume continues the run in "
                           f"{run_path}, --overwrite deletes it; pass one of them")
-    if config.domain not in envs.DOMAINS:
-        raise ConfigError(f"unknown domain {config.domain!r}; choose one of {', '.join(envs.DOMAINS)}")
+    envs.check_domain(config.domain)
     if resume and not (run_path / "config.json").is_file():
         RunDir.open(run_path)  # names what is missing
     device = setup_torch(config)
@@ -152,7 +149,7 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
                           max_episode_length=episode_length, device=device)
     needs = agent.replay_needs()
 
-    step, episode, last_checkpoint = 0, 0, None
+    step, episode = 0, 0
     first_reset = True
     obs = skill = skill_host = None
     episode_return, episode_start = 0.0, True
@@ -172,7 +169,7 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
                 episode_return, episode_start = float(episode_state["episode_return"]), False
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
             raise CheckpointError(f"cannot resume {run.path}: the checkpoint does not fit this run ({exc})") from exc
-        step, episode, last_checkpoint = state["step"], state["episode"], state["step"]
+        step, episode = state["step"], state["episode"]
         first_reset = False
         # Only now, with the checkpoint loaded, may the run's config change (a larger --frames).
         run.save_config(config)
@@ -182,7 +179,7 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
     logger = MetricsLogger(run, purge_step=step + 1 if resume else None)
     window = MetricWindow()
     snapshots = set(config.snapshot_frames) | {config.frames}
-    bar = progress_bar(config.frames, step, f"pretrain {config.agent} {config.domain}", progress)
+    bar = Progress(config.frames, step, f"pretrain {config.agent} {config.domain}", progress)
     started = time.time()
     start_step = step
 
@@ -203,9 +200,10 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
                 "skill": None if skill is None else skill.cpu(), "episode_return": episode_return}
         save_checkpoint(run, checkpoint, f"resume_{step}")
 
-    stop = StopSignals()
+    checkpoints = ResumeCheckpoints(save_resume, window, config.checkpoint_every, config.frames, "pre-training",
+                                    run.path, last=step if state is not None else None)
     try:
-        with stop, reported_failures("training", run.path, lambda: last_checkpoint):
+        with checkpoints:
             while step < config.frames:
                 if episode_start:
                     obs, _ = env.reset(seed=config.seed) if first_reset else env.reset()
@@ -242,16 +240,8 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
                     episode += 1
                     episode_start = True
                     logger.log(step, {"episode": episode, "episode_task_reward": episode_return}, prefix="episode")
-                    if step - (last_checkpoint or 0) >= config.checkpoint_every or step >= config.frames:
-                        window.flush()
-                        save_resume()
-                        last_checkpoint = step
-                if stop.received is not None and step < config.frames:
-                    window.flush()
-                    if last_checkpoint != step:
-                        save_resume(mid_episode=not episode_start)
-                        last_checkpoint = step
-                    raise interrupted(stop, "pre-training", step, config.frames, run.path)
+                    checkpoints.episode_end(step)
+                checkpoints.after_step(step, mid_episode=not episode_start)
     finally:
         bar.close()
         logger.close()
