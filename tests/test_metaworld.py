@@ -215,6 +215,9 @@ def test_reward_and_success_match_a_hand_computation(name):
         # tcp_init is the gripper centre Meta-World recorded when the hand settled during the reset
         # (before the faucet was placed, so MuJoCo's positions may have been refreshed since).
         base, tcp_init = base_position(env), mw.init_tcp.copy()
+        # Open places the faucet without refreshing positions; close refreshes them (docs/tasks.md §4.6).
+        drift = np.linalg.norm(tcp(env) - tcp_init)
+        assert drift == 0.0 if name == "metaworld_faucet_open" else drift < 1e-4
         # Set the handle's angle (and move the hand a little), then take one step with no hand motion.
         mw.data.qpos[address] = angle
         mw.data.qvel[:] = 0.0
