@@ -81,7 +81,7 @@ from dvfb.agents.perf import PerfConfig, bf16_matmul_is_fast
 from dvfb.config import merge, replace, to_dict
 from dvfb.replay import ReplayBuffer
 from dvfb.runs import read_metrics
-from dvfb.workflows.common import MetricWindow, check_action
+from dvfb.training.monitor import MetricWindow, check_action
 from dvfb.workflows.config import PretrainConfig, agent_sections, preset_config, run_config_from_dict
 
 HERE = Path(__file__).resolve().parent

@@ -20,9 +20,10 @@ from dvfb import envs
 from dvfb.agents import agent_names, get_spec, make_agent
 from dvfb.cli import main
 from dvfb.errors import CheckpointError
+from dvfb.protocols import finetuner_class, protocols_of
 from dvfb.replay import ReplayBuffer
 from dvfb.runs import RunDir, load_snapshot
-from dvfb.workflows.common import agent_from_snapshot, check_snapshot, load_pretrained_agent, snapshot_state
+from dvfb.workflows.snapshots import agent_from_snapshot, check_snapshot, load_pretrained_agent, snapshot_state
 from dvfb.workflows.config import load_run_config, run_config_class
 from dvfb.workflows.finetune import finetune
 from dvfb.workflows.pretrain import pretrain
@@ -31,7 +32,9 @@ from tiny import tiny_run_config
 
 AGENTS = agent_names()
 DVFB_REWARDS = ("rnd_ce", "icm_apt", "proto", "cic")
+# Skill selection needs whole episodes: two maze episodes of 1000 steps.
 FAST_INFERENCE = {"steps": 300, "random_action_steps": 100, "samples": 300, "eval_episodes": 1}
+FAST_SELECTION = {"steps": 2000, "eval_episodes": 1}
 MAZE = envs.make("point_mass_maze_reach_top_left")
 OBS, ACT = MAZE.observation_space.shape[0], MAZE.action_space.shape[0]
 
@@ -139,14 +142,15 @@ def test_resume_equals_uninterrupted_zeroshot_and_finetune(agent_name, tmp_path)
             same = torch.equal(tensor, b[key][name]) if isinstance(tensor, torch.Tensor) else tensor == b[key][name]
             assert same, (agent_name, key, name)
 
-    spec = get_spec(agent_name)
-    # Only the options of the family's protocol: the others are errors (strict configs).
-    inference = {k: v for k, v in FAST_INFERENCE.items()
-                 if k in {f.name for f in dataclasses.fields(spec.inference)}}
+    zero_shot, _finetuner = protocols_of(agent_name)
+    # Only the options of the method's protocol: the others are errors (strict configs).
+    fast = FAST_SELECTION if zero_shot.name == "skill_selection" else FAST_INFERENCE
+    inference = {k: v for k, v in fast.items() if k in {f.name for f in dataclasses.fields(zero_shot.config_cls)}}
     result = zeroshot(full, "point_mass_maze_reach_top_left", inference=inference)
     assert result["agent"] == agent_name and result["eval_episodes"] == 1
+    assert result["protocol"] == zero_shot.name
     assert 0.0 <= result["mean_return"] <= 1000.0
-    assert (result["z"] is None) == (spec.zero_shot == "single_policy")
+    assert (result["z"] is None) == (zero_shot.name == "single_policy")
 
     ft = finetune(full, "point_mass_maze_reach_top_left", inference=inference,
                   finetune={"frames": 600, "seed_frames": 300, "eval_every": 600, "eval_episodes": 1,
@@ -162,7 +166,7 @@ def test_ddpg_finetuner_copies_the_trunk_and_keeps_the_random_target():
     replay = filled_replay(agent)
     agent.update(agent.replay_needs().sample(replay))
     pretrained_critic = {k: v.clone() for k, v in agent.core.critic.state_dict().items()}
-    finetuner = get_spec("rnd").finetuner(agent, None, config.finetune)
+    finetuner = finetuner_class(get_spec("rnd").finetuner)(agent, None, config.finetune)
     critic, target = agent.core.critic, agent.core.critic_target
     for key, value in critic.state_dict().items():
         copied = torch.equal(value, pretrained_critic[key])
@@ -177,7 +181,7 @@ def test_ddpg_finetuner_copies_the_trunk_and_keeps_the_random_target():
     proto, proto_config = build("proto")
     assert proto_config.finetune.init_critic == "all"
     whole = {k: v.clone() for k, v in proto.core.critic.state_dict().items()}
-    get_spec("proto").finetuner(proto, None, proto_config.finetune)
+    finetuner_class(get_spec("proto").finetuner)(proto, None, proto_config.finetune)
     assert all(torch.equal(v, whole[k]) for k, v in proto.core.critic.state_dict().items())
 
 

@@ -26,7 +26,7 @@ from dvfb.analysis.common import AnalysisError, method_name
 from dvfb.analysis.exploration import coverage
 from dvfb.analysis.report import make_report
 from dvfb.analysis.value import binned_spearman, quantile_bins, spearman
-from dvfb.agents.finetune import FinetuneConfig
+from dvfb.protocols.dual_value import FinetuneConfig
 from dvfb.cli import main
 from dvfb.config import merge, save_json
 from dvfb.runs import write_json_atomic

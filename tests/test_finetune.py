@@ -1,4 +1,4 @@
-"""Tests for dvfb.agents.finetune: reward mapping, the task critic Q_F, the dual-value actor and the
+"""Tests for dvfb.protocols.dual_value: reward mapping, the task critic Q_F, the dual-value actor and the
 freezing of F, B and z_r (docs/methods.md §9; §13 invariants 15-17 and 27).
 
 To feed the mapping a constant implicit reward (invariant 15) the tests use a batch whose rows are
@@ -15,7 +15,7 @@ import torch
 
 from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig
 from dvfb.agents.fb import FBAgent, FBConfig
-from dvfb.agents.finetune import DualValueFinetuner, FinetuneConfig
+from dvfb.protocols.dual_value import DualValueFinetuner, FinetuneConfig
 from dvfb.nets import RunningMeanStd, project_to_sphere
 from dvfb.replay import Batch
 

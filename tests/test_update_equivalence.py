@@ -520,7 +520,7 @@ def test_sync_detector_detects_a_sync(no_host_sync):
     def syncing_fb_losses(*args):
         losses = original(*args)
         losses["fb_loss"].item()  # called from this test file: allowed
-        from dvfb.workflows.common import MetricWindow
+        from dvfb.training.monitor import MetricWindow
         window = MetricWindow()
         window.add(0, {"x": losses["fb_loss"]})
         window.flush()  # .cpu() from dvfb code: caught

@@ -21,7 +21,7 @@ import torch
 from dvfb.agents import get_spec
 from dvfb.config import merge
 from dvfb.errors import ConfigError
-from dvfb.workflows.common import load_pretrained_agent, open_pretrained_run
+from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 
 
 class PretrainedAgent:
@@ -50,19 +50,20 @@ class PretrainedAgent:
 
         ``inference`` overrides the run's inference options (e.g. ``reward_quantile=None``).
         """
-        from dvfb.workflows.zeroshot import infer_from_reward_fn
+        from dvfb.workflows.zeroshot import infer_from_reward_fn, run_protocol
 
         given = [rewards is not None, reward_fn is not None, goal is not None]
         if sum(given) != 1:
             raise ConfigError("infer_z needs exactly one of (obs, next_obs, rewards), reward_fn= or goal=")
-        if self.spec.zero_shot != "reward_inference":
+        if not self.agent.skill.has_skill:
             raise ConfigError(f"{self.name!r} has a single policy and no skill to infer; call policy() without z")
-        cfg = merge(self.config.inference, inference, "inference.")
+        protocol = run_protocol(self.config, inference)
+        protocol.check_source("goal" if goal is not None else "reward_fn", self.name)
         device = self.agent.device
         if goal is not None:
-            return self.agent.skill_from_goal(torch.as_tensor(np.asarray(goal), dtype=torch.float32))
+            return protocol.skill_from_goal(self.agent, goal)[0]
         if reward_fn is not None:
-            return infer_from_reward_fn(self.agent, self.run, self.config, reward_fn, cfg)[0]
+            return infer_from_reward_fn(self.agent, self.run, self.config, reward_fn, protocol)[0]
         if obs is None or next_obs is None:
             raise ConfigError("infer_z from samples needs obs, next_obs and rewards")
 
@@ -73,7 +74,7 @@ class PretrainedAgent:
         if not (obs_t.shape[0] == next_t.shape[0] == reward_t.shape[0]):
             raise ConfigError(f"obs, next_obs and rewards have {obs_t.shape[0]}, {next_t.shape[0]} and "
                               f"{reward_t.shape[0]} rows; they must match")
-        return self.agent.infer_skill(obs_t, next_t, reward_t, cfg)[0]
+        return protocol.skill_from_samples(self.agent, obs_t, next_t, reward_t)[0]
 
     def act(self, obs: np.ndarray, z: torch.Tensor | None = None, explore: bool = False) -> np.ndarray:
         """One action: the policy's mean (or a rollout sample with ``explore``)."""

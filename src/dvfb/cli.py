@@ -67,7 +67,7 @@ def cmd_agents(args: argparse.Namespace) -> int:
     """The registered methods, from the registry."""
     from dvfb.agents import AGENTS
 
-    rows = [(s.name, s.family, s.zero_shot, s.finetuner.__name__, ", ".join(s.sections)) for s in AGENTS.values()]
+    rows = [(s.name, s.family, s.zero_shot, s.finetuner, ", ".join(s.sections)) for s in AGENTS.values()]
     header = ("agent", "family", "zero-shot", "fine-tuner", "config sections")
     widths = [max(len(r[i]) for r in rows + [header]) for i in range(len(header))]
     print("  ".join(h.ljust(w) for h, w in zip(header, widths)))
@@ -80,14 +80,14 @@ def cmd_agents(args: argparse.Namespace) -> int:
 
 
 def _protocol_classes(kind: str) -> list[type]:
-    """The config classes of every registered family's zero-shot or fine-tuning protocol."""
-    from dvfb.agents import AGENTS
+    """The config classes of every registered zero-shot protocol (``inference``) or fine-tuner."""
+    from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS
 
+    registry = ZERO_SHOT_PROTOCOLS if kind == "inference" else FINETUNERS
     classes: list[type] = []
-    for spec in AGENTS.values():
-        cls = getattr(spec, kind)
-        if cls not in classes:
-            classes.append(cls)
+    for protocol in registry.values():
+        if protocol.config_cls not in classes:
+            classes.append(protocol.config_cls)
     return classes
 
 
@@ -126,7 +126,7 @@ def cmd_pretrain(args: argparse.Namespace) -> int:
 
 def cmd_zeroshot(args: argparse.Namespace) -> int:
     from dvfb import envs
-    from dvfb.workflows.common import open_pretrained_run
+    from dvfb.workflows.snapshots import open_pretrained_run
     from dvfb.workflows.zeroshot import zeroshot
 
     _run, config = open_pretrained_run(args.run)
@@ -250,6 +250,9 @@ def cmd_random_policy(args: argparse.Namespace) -> int:
 def cmd_sweep(args: argparse.Namespace) -> int:
     """A grid of runs through pre-train -> zero-shot -> fine-tune -> report (dvfb.sweep)."""
     from dvfb.sweep.cli import run_from_args
+    from dvfb.sweep.units import use_in_process
+
+    use_in_process(main)  # the debug executor's phases are dvfb commands run in this process
 
     return run_from_args(args)
 
@@ -284,11 +287,10 @@ def cmd_report(args: argparse.Namespace) -> int:
 def cmd_analyze_value(args: argparse.Namespace) -> int:
     """Skill value vs return (paper §4, Fig. 3b)."""
     from dvfb.analysis.value import analyze_value
-    from dvfb.agents.protocols import InferenceConfig
 
     summary = analyze_value(args.run, args.task, skills=args.skills, episodes_per_skill=args.episodes_per_skill,
                             bins=args.bins, max_steps=args.max_steps, snapshot=args.snapshot, seed=args.seed,
-                            inference=overrides_from_args(args, InferenceConfig, prefix="inference."),
+                            inference=_protocol_overrides(args, "inference"),
                             overwrite=args.overwrite)
 
     def fmt(value):
@@ -345,7 +347,6 @@ def add_snapshot_and_seed(p: argparse.ArgumentParser, seed_what: str = "seed") -
 def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
     """The parser; ``pretrain``'s config flags are those of ``agent`` (read from ``--agent`` first)."""
     from dvfb.agents import agent_names
-    from dvfb.agents.protocols import InferenceConfig
     from dvfb.workflows.config import PRESETS, preset_config, run_config_class
 
     parser = argparse.ArgumentParser(prog="dvfb", description="Online unsupervised zero-shot RL: DVFB, FB and "
@@ -490,7 +491,7 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=None, help="cut episodes after this many steps (default: full)")
     add_snapshot_and_seed(p)
     p.add_argument("--overwrite", action="store_true", help="replace existing analysis files")
-    add_arguments(p, InferenceConfig, prefix="inference.")
+    _add_protocol_arguments(p, "inference")
     p.set_defaults(func=cmd_analyze_value)
 
     p = sub.add_parser(

@@ -413,14 +413,16 @@ class BackwardMap(nn.Module):
 class TwinCritic(nn.Module):
     """``Q_k(s, a, z)``: a shared ``LNT([s, z, a] -> H)`` trunk and K heads ``H -> H -> 1`` (§4.4).
 
-    Used for the exploration critic Q_P (pre-training) and the task critic Q_F (fine-tuning).
-    Returns ``(K, N, 1)``.
+    Used for the exploration critic Q_P (pre-training), the task critic Q_F (fine-tuning) and the
+    DDPG core. Returns ``(K, N, out_dim)``.
     """
 
-    def __init__(self, obs_dim: int, action_dim: int, z_dim: int, hidden_dim: int, num_heads: int = 2):
+    def __init__(self, obs_dim: int, action_dim: int, z_dim: int, hidden_dim: int, num_heads: int = 2,
+                 out_dim: int = 1):
         super().__init__()
         self.trunk = layernorm_tanh_layer(obs_dim + z_dim + action_dim, hidden_dim)
-        self.heads = TwinHead(hidden_dim, hidden_dim, 1, num_heads)
+        # out_dim > 1: successor features psi_k (APS), whose values are psi_k . w (the caller's).
+        self.heads = TwinHead(hidden_dim, hidden_dim, out_dim, num_heads)
         orthogonal_init_(self)
 
     def forward(self, obs: torch.Tensor, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:

@@ -55,6 +55,7 @@ Memory
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,6 +89,16 @@ class Batch:
 
     def __len__(self) -> int:
         return self.obs.shape[0]
+
+    def chunk(self, n: int) -> list[Batch]:
+        """``n`` equal batches of the rows (the last may be shorter): a batch of ``n * B`` uniform
+        draws is ``n`` independent batches of ``B`` (BeCL's fresh batch per contrastive step)."""
+        size = -(-len(self) // n)
+
+        def part(x: torch.Tensor | None, i: int) -> torch.Tensor | None:
+            return None if x is None else x[i * size:(i + 1) * size]
+
+        return [Batch(*(part(getattr(self, f.name), i) for f in dataclasses.fields(self))) for i in range(n)]
 
     def to(self, device: str | torch.device) -> Batch:
         """The same batch with every tensor moved to ``device``."""

@@ -3,8 +3,9 @@
 A workflow (pre-training, zero-shot, fine-tuning, the analyses) sees an agent only through
 :class:`Agent`:
 
-* **skills** -- ``skill_dim`` (0 for methods without one), :meth:`Agent.sample_skill` draws from
-  the method's prior; the workflow resamples every ``update_z_every`` steps and at episode starts;
+* **skills** -- ``skill``, the method's :class:`~dvfb.skills.SkillSpec` (kind, width, prior,
+  resampling rule); :meth:`Agent.sample_skill` draws from the prior; the training loop redraws
+  when ``skill.due(step, episode_start)`` says so;
 * **acting** -- :meth:`Agent.act` for one observation and an optional skill, a rollout sample or
   the mean;
 * **learning** -- :meth:`Agent.replay_needs` says how to sample the replay (batch size, discount,
@@ -30,6 +31,7 @@ from torch import nn
 from dvfb.errors import ConfigError
 from dvfb.nets import ACTION_EPS, HostActor, rollout_action
 from dvfb.replay import Batch
+from dvfb.skills import NO_SKILL, SkillSpec
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,7 @@ class Agent(nn.Module):
     :meth:`update`, :meth:`optimizers` and :meth:`pretrained_modules`."""
 
     name: ClassVar[str] = ""
+    skill: SkillSpec = NO_SKILL
     obs_dim: int
     action_dim: int
     device: torch.device
@@ -71,11 +74,15 @@ class Agent(nn.Module):
     @property
     def skill_dim(self) -> int:
         """Width of the skill the actor is conditioned on (and the replay stores); 0 = none."""
-        return 0
+        return self.skill.dim
 
-    def sample_skill(self, n: int = 1) -> torch.Tensor | None:
-        """``n`` draws of the method's skill prior, ``(n, skill_dim)``; None without skills."""
-        return None
+    def sample_skill(self, n: int = 1, generator: torch.Generator | None = None) -> torch.Tensor | None:
+        """``n`` draws of the method's skill prior, ``(n, skill_dim)``; None without skills.
+
+        ``generator``: the caller's random stream (None: torch's global one). Methods whose skill
+        kind is ``method`` override this.
+        """
+        return self.skill.sample(n, self.device, generator)
 
     # Learning ----------------------------------------------------------------------------------
     def replay_needs(self) -> ReplayNeeds:
@@ -130,6 +137,24 @@ class Agent(nn.Module):
     def skill_from_goal(self, goal_obs: torch.Tensor) -> torch.Tensor:
         """The skill that reaches a goal observation."""
         raise ConfigError(f"agent {self.name!r} does not infer a skill from a goal state")
+
+    def goal_widths(self) -> tuple[int, ...]:
+        """The sizes a goal given to :meth:`skill_from_goal` may have (first: an observation)."""
+        return (self.obs_dim,)
+
+    # Analysis ----------------------------------------------------------------------------------
+    learns_skill_value: ClassVar[bool] = False
+
+    def skill_value(self, obs: torch.Tensor, action: torch.Tensor, skill: torch.Tensor,
+                    task: torch.Tensor | None = None) -> torch.Tensor:
+        """The value of acting with ``skill`` for the task ``task`` (default: the skill's own), ``(N,)``
+        (FB: ``Q_M = min_k F_k(s, a, z).z_task``); methods that learn one set ``learns_skill_value``."""
+        raise ConfigError(f"agent {self.name!r} has no skill value (only methods that learn one, such as FB and "
+                          "DVFB, can be analysed with analyze-value)")
+
+    def nonfinite_hint(self, metric_names: list[str]) -> str:
+        """What to tell a user whose update produced these non-finite metrics ("" for nothing)."""
+        return ""
 
     # State -------------------------------------------------------------------------------------
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:

@@ -7,9 +7,8 @@
   then the target EMA;
 * :class:`IntrinsicDDPGAgent` -- a method = the core trained on one
   :class:`~dvfb.rewards.base.IntrinsicReward` module's reward; a baseline only builds its module;
-* :class:`DDPGFinetuneConfig`, :class:`DDPGFinetuner` -- URLB's fine-tuning: keep the pre-trained
-  actor, a fresh critic whose trunk (or, for Proto, everything) is copied from pre-training, and
-  the extrinsic n-step reward.
+
+Their fine-tuner (URLB's) is the registered protocol ``urlb`` (:mod:`dvfb.protocols.urlb`).
 """
 
 from __future__ import annotations
@@ -21,13 +20,12 @@ from torch import nn
 
 from dvfb.agents.base import Agent, ReplayNeeds, no_skill_like
 from dvfb.agents.perf import NetRunner, PerfConfig, requires_grad_disabled
-from dvfb.agents.protocols import FinetuneProtocol
 from dvfb.config import param
 from dvfb.nets import Actor, TwinCritic, adam, call_network, make_target, soft_update_, training_action, twin_td_loss
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward
+from dvfb.skills import NO_SKILL, SkillSpec
 
-CRITIC_INITS = ("trunk", "all", "none")
 # The CPU-sized preset of the URLB-style agents: the backbone's constants with narrower networks
 # and smaller batches, as the FB agents' small preset (docs/results/cpu_experiment.md).
 DDPG_SMALL = {"hidden_dim": 256, "batch_size": 256}
@@ -57,8 +55,18 @@ class DDPGCore(nn.Module):
         self.obs_dim, self.skill_dim, self.action_dim = obs_dim, skill_dim, action_dim
         h = config.hidden_dim
         self.actor = Actor(obs_dim, skill_dim, action_dim, h, h, arch="mlp")
-        self.critic = TwinCritic(obs_dim, action_dim, skill_dim, h)
+        self.critic = self.build_critic()
         self.critic_target = make_target(self.critic)
+
+    def build_critic(self) -> nn.Module:
+        """A fresh critic (pre-training, and fine-tuning's new one). Variants of the core (APS's
+        successor-feature critic, CeSD's ensemble) override this and :meth:`critic_values`."""
+        return TwinCritic(self.obs_dim, self.action_dim, self.skill_dim, self.config.hidden_dim)
+
+    def critic_values(self, critic: nn.Module, obs: torch.Tensor, skill: torch.Tensor, action: torch.Tensor,
+                      run=call_network) -> torch.Tensor:
+        """The twin Q-values ``(K, N, 1)`` of a critic (the online one or its target)."""
+        return run(critic, obs, skill, action)
 
     def make_optimizers(self) -> None:
         """Fresh Adam optimisers of the actor and the critic (after the core sits on its device)."""
@@ -73,14 +81,14 @@ class DDPGCore(nn.Module):
         c = self.config
         with torch.no_grad():
             next_action = training_action(run(self.actor, batch.next_obs, skill), c.stddev, c.stddev_clip)
-            next_q = run(self.critic_target, batch.next_obs, skill, next_action).amin(0)  # (N, 1)
+            next_q = self.critic_values(self.critic_target, batch.next_obs, skill, next_action, run).amin(0)  # (N, 1)
             target = reward + batch.discount * next_q
-        return twin_td_loss(run(self.critic, batch.obs, skill, batch.action), target)
+        return twin_td_loss(self.critic_values(self.critic, batch.obs, skill, batch.action, run), target)
 
     def actor_loss(self, obs: torch.Tensor, skill: torch.Tensor, run=call_network) -> torch.Tensor:
         c = self.config
         action = training_action(run(self.actor, obs, skill), c.stddev, c.stddev_clip)
-        return -run(self.critic, obs, skill, action).amin(0).mean()
+        return -self.critic_values(self.critic, obs, skill, action, run).amin(0).mean()
 
     def update(self, batch: Batch, reward: torch.Tensor, metrics: dict, run=call_network) -> None:
         """Critic step, actor step, target EMA (URLB's order). ``reward`` is ``(N, 1)``."""
@@ -105,21 +113,23 @@ class IntrinsicDDPGAgent(Agent):
 
     Subclasses set ``name`` and ``reward_section`` (the run config's section of their reward
     module) and implement :meth:`build_reward`. The run config's ``ddpg`` section configures the
-    core; ``skill_dim`` is 0 for the exploration methods.
+    core. A method with a skill declares it in :meth:`declare_skill` (from its own config section);
+    a variant of the core (another critic) sets ``core_cls``.
     """
 
     reward_section: str = ""
+    core_cls: type = DDPGCore
 
     @classmethod
     def from_config(cls, obs_dim, action_dim, config, device="cpu") -> IntrinsicDDPGAgent:
         return cls(obs_dim, action_dim, config.ddpg, getattr(config, cls.reward_section), device, config.perf)
 
     def __init__(self, obs_dim: int, action_dim: int, ddpg: DDPGConfig, reward_config,
-                 device: str | torch.device = "cpu", perf: PerfConfig | None = None, skill_dim: int = 0):
+                 device: str | torch.device = "cpu", perf: PerfConfig | None = None):
         super().__init__()
         self.obs_dim, self.action_dim, self.ddpg, self.reward_config = obs_dim, action_dim, ddpg, reward_config
-        self._skill_dim = skill_dim
-        self.core = DDPGCore(obs_dim, skill_dim, action_dim, ddpg)
+        self.skill = self.declare_skill()
+        self.core = self.build_core()
         self.intrinsic = self.build_reward()
         self.to(device)
         self.device = torch.device(device)
@@ -128,16 +138,21 @@ class IntrinsicDDPGAgent(Agent):
         self.net_runner = NetRunner(perf, self.device)
         self.net_runner.compile([self.core.actor, self.core.critic, self.core.critic_target])
 
+    def declare_skill(self) -> SkillSpec:
+        """The method's skill (docs/methods.md, "Skills"); the exploration methods have none."""
+        return NO_SKILL
+
+    def build_core(self) -> DDPGCore:
+        """The core: ``core_cls`` on the ``ddpg`` section (a variant with widths of its own
+        section overrides this)."""
+        return self.core_cls(self.obs_dim, self.skill.dim, self.action_dim, self.ddpg)
+
     def build_reward(self) -> IntrinsicReward:
         raise NotImplementedError
 
     @property
     def actor(self) -> nn.Module:
         return self.core.actor
-
-    @property
-    def skill_dim(self) -> int:
-        return self._skill_dim
 
     @property
     def policy_stddev(self) -> float:
@@ -162,56 +177,3 @@ class IntrinsicDDPGAgent(Agent):
     def pretrained_modules(self) -> dict[str, nn.Module]:
         # Everything (URLB pickles the whole agent); fine-tuning uses the actor and the critic.
         return {"core": self.core, "intrinsic": self.intrinsic}
-
-
-@dataclass
-class DDPGFinetuneConfig(FinetuneProtocol):
-    """URLB-style fine-tuning (docs/methods.md, "Fine-tuning the URLB-style agents")."""
-
-    init_critic: str = param("trunk", "What the fresh critic copies from pre-training: its trunk (URLB), all of "
-                             "it (Proto), or nothing.", CRITIC_INITS)
-
-
-class DDPGFinetuner(nn.Module):
-    """Fine-tune a URLB-style agent on the extrinsic n-step reward (§0.6 of the baselines' protocol).
-
-    The pre-trained actor is kept; the critic is fresh, with its trunk (``init_critic="trunk"``) or
-    all of it (``"all"``) copied from pre-training. The target critic is the copy of the *fresh*
-    critic made before the trunk copy and is never re-synchronised (URLB's behaviour; it drifts to
-    the trained one by the EMA). Optimisers are new; the intrinsic module is no longer used. The
-    skill, if the method has one, is fixed and comes with every stored transition.
-    """
-
-    uniform_seed_actions = True
-
-    def __init__(self, agent: IntrinsicDDPGAgent, skill: torch.Tensor | None, config: DDPGFinetuneConfig):
-        super().__init__()
-        self.agent, self.config = agent, config
-        core = agent.core
-        fresh = TwinCritic(agent.obs_dim, agent.action_dim, agent.skill_dim, agent.ddpg.hidden_dim).to(agent.device)
-        target = make_target(fresh)
-        if config.init_critic == "trunk":
-            fresh.trunk.load_state_dict(core.critic.trunk.state_dict())
-        elif config.init_critic == "all":
-            fresh.load_state_dict(core.critic.state_dict())
-        core.critic, core.critic_target = fresh, target
-        core.make_optimizers()
-        self.skill = None if skill is None else skill.detach().clone()
-
-    def replay_needs(self) -> ReplayNeeds:
-        return self.agent.replay_needs()
-
-    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
-        metrics: dict[str, torch.Tensor] = {}
-        self.agent.core.update(batch, batch.reward, metrics, self.agent.net_runner)
-        return metrics
-
-    def training_state(self) -> dict:
-        core = self.agent.core
-        return {"core": core.state_dict(), "optimizers": {k: o.state_dict() for k, o in core.optimizers().items()}}
-
-    def load_training_state(self, state: dict) -> None:
-        core = self.agent.core
-        core.load_state_dict(state["core"])
-        for k, o in core.optimizers().items():
-            o.load_state_dict(state["optimizers"][k])

@@ -3,8 +3,7 @@ trained on the variance of an ensemble of forward models' predictions of ``s_{t+
 
 from __future__ import annotations
 
-from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGFinetuneConfig, DDPGFinetuner, IntrinsicDDPGAgent
-from dvfb.agents.protocols import PolicyEvaluationConfig
+from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.rewards.disagreement import DisagreementConfig, DisagreementReward
 
@@ -20,6 +19,5 @@ class DisagreementAgent(IntrinsicDDPGAgent):
 register(AgentSpec(
     name="disagreement", agent_cls=DisagreementAgent, family="exploration",
     summary="Disagreement: DDPG on the variance of an ensemble of forward models (Pathak et al.)",
-    sections={"ddpg": DDPGConfig, "disagreement": DisagreementConfig}, zero_shot="single_policy",
-    inference=PolicyEvaluationConfig, finetune=DDPGFinetuneConfig, finetuner=DDPGFinetuner,
+    sections={"ddpg": DDPGConfig, "disagreement": DisagreementConfig}, zero_shot="single_policy", finetuner="urlb",
     presets={"small": {"ddpg": DDPG_SMALL, "disagreement": {"hidden_dim": 256}}}))

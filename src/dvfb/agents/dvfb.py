@@ -16,9 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from dvfb.agents.fb import FB_SMALL, FBAgent, FBConfig, fb_finetune_label
-from dvfb.agents.finetune import DualValueFinetuner, FinetuneConfig
 from dvfb.agents.perf import PerfConfig
-from dvfb.agents.protocols import InferenceConfig
 from dvfb.agents.registry import AgentSpec, config_field, register
 from dvfb.config import param
 from dvfb.nets import TwinCritic, adam, make_target, twin_td_loss
@@ -207,7 +205,7 @@ register(AgentSpec(
     summary="DVFB: FB plus an exploration critic on RND + contrastive entropy, actor on Q_M + alpha Q_P",
     sections={"fb": FBConfig, "exploration": ExplorationConfig, "icm_apt": ICMAPTConfig, "proto": ProtoConfig,
               "cic": CICConfig},
-    zero_shot="reward_inference", inference=InferenceConfig, finetune=FinetuneConfig, finetuner=DualValueFinetuner,
+    zero_shot="reward_inference", finetuner="dual_value", moved_fields={"update_z_every": "fb.skill_every"},
     presets={"small": {"fb": FB_SMALL, "exploration": {"contrastive_hidden_dim": 256, "rnd_rep_dim": 128},
                        "icm_apt": {"hidden_dim": 256, "rep_dim": 128},
                        "cic": {"hidden_dim": 256}},

@@ -40,6 +40,7 @@ from dvfb.nets import (
     training_action,
 )
 from dvfb.replay import Batch
+from dvfb.skills import SkillSpec
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +52,8 @@ class FBConfig:
     """Hyper-parameters of the FB representation and its actor (docs/methods.md §12, §14)."""
 
     z_dim: int = param(50, "Dimension d of F, B and the task vector z.", at_least=1)
+    skill_every: int = param(300, "Resample the rollout z when the step counter is a multiple of this (and at "
+                             "every episode start), §5.2.", at_least=1)
     hidden_dim: int = param(1024, "Hidden width H of the actor, F and the critics.", at_least=1)
     feature_dim: int = param(512, "Feature width E of each two-stream encoder (actor, F).", at_least=1)
     backward_hidden_dim: int = param(526, "Hidden width Hb of the backward map B.", at_least=1)
@@ -143,6 +146,7 @@ class FBAgent(Agent):
         if c.backward_input not in BACKWARD_INPUTS:
             raise ValueError(f"backward_input must be one of {BACKWARD_INPUTS}, got {c.backward_input!r}")
         backward_in = obs_dim if c.backward_input == "state" else 2 * obs_dim
+        self.skill = SkillSpec("sphere", c.z_dim, every=c.skill_every)
         self.actor = Actor(obs_dim, c.z_dim, action_dim, c.hidden_dim, c.feature_dim, c.actor_arch)
         self.forward_map = ForwardMap(obs_dim, action_dim, c.z_dim, c.hidden_dim, c.feature_dim)
         self.backward_map = BackwardMap(backward_in, c.backward_hidden_dim, c.z_dim)
@@ -194,15 +198,8 @@ class FBAgent(Agent):
         return [self.forward_map]
 
     # Skills, replay and acting (the Agent interface) -------------------------------------------
-    @property
-    def skill_dim(self) -> int:
-        return self.config.z_dim
-
-    def sample_z(self, n: int = 1) -> torch.Tensor:
-        return sample_z_prior(n, self.config.z_dim, self.device)
-
-    def sample_skill(self, n: int = 1) -> torch.Tensor:
-        return self.sample_z(n)
+    def sample_z(self, n: int = 1, generator: torch.Generator | None = None) -> torch.Tensor:
+        return sample_z_prior(n, self.config.z_dim, self.device, generator)
 
     @property
     def policy_stddev(self) -> float:
@@ -377,11 +374,25 @@ class FBAgent(Agent):
     def skill_from_goal(self, goal_obs: torch.Tensor) -> torch.Tensor:
         return self.infer_z_from_goal(goal_obs)
 
+    def goal_widths(self) -> tuple[int, ...]:
+        # B's pair inputs also take a goal transition (s, s').
+        return (self.obs_dim,) if self.config.backward_input == "state" else (self.obs_dim, 2 * self.obs_dim)
+
+    learns_skill_value = True
+
     @torch.no_grad()
-    def skill_value(self, obs: torch.Tensor, action: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """``Q_M = min_k F_k(s, a, z) . z`` for evaluation and analysis."""
+    def skill_value(self, obs: torch.Tensor, action: torch.Tensor, z: torch.Tensor,
+                    task: torch.Tensor | None = None) -> torch.Tensor:
+        """``min_k F_k(s, a, z) . z_task`` (``Q_M`` when the task is z itself) for evaluation and analysis."""
         zz = z.expand(obs.shape[0], -1) if z.dim() == 1 else z
-        return skill_values(self.forward_map(obs, action, zz), zz).amin(0)
+        tt = zz if task is None else (task.expand(obs.shape[0], -1) if task.dim() == 1 else task)
+        return skill_values(self.forward_map(obs, action, zz), tt).amin(0)
+
+    def nonfinite_hint(self, metric_names: list[str]) -> str:
+        if any("implicit_reward" in k for k in metric_names):
+            return ("the implicit reward B Cov(B)^-1 z is not finite: Cov(B) is singular or ill-conditioned, add "
+                    "a ridge with --fb.cov-ridge 1e-6 (or larger)")
+        return ""
 
     # Checkpointing -------------------------------------------------------------------------------
     def pretrained_modules(self) -> dict[str, nn.Module]:
@@ -393,10 +404,7 @@ class FBAgent(Agent):
         return {"fb_optimizer": self.fb_optimizer, "actor_optimizer": self.actor_optimizer}
 
 
-# Registration (beside the agent). The fine-tuner module imports this one, so it is imported here,
-# after FBAgent exists; dvfb.agents imports this module first.
-from dvfb.agents.finetune import DualValueFinetuner, FinetuneConfig  # noqa: E402
-from dvfb.agents.protocols import InferenceConfig  # noqa: E402
+# Registration (beside the agent).
 from dvfb.agents.registry import AgentSpec, config_field, register  # noqa: E402
 
 
@@ -417,8 +425,9 @@ FB_SMALL = {"hidden_dim": 256, "feature_dim": 128, "backward_hidden_dim": 256, "
 register(AgentSpec(
     name="fb", agent_cls=FBAgent, family="forward-backward",
     summary="online FB: successor measures F.B, actor maximising F(s, a, z).z (Touati et al.)",
-    sections={"fb": FBConfig}, zero_shot="reward_inference", inference=InferenceConfig,
-    finetune=FinetuneConfig, finetuner=DualValueFinetuner,
+    sections={"fb": FBConfig}, zero_shot="reward_inference", finetuner="dual_value",
+    # Configs written before the registry carried DVFB's exploration section, unused by FB.
+    moved_fields={"update_z_every": "fb.skill_every", "exploration": None},
     presets={"small": {"fb": FB_SMALL}, "code": {"fb": {"backward_input": "code_exact"},
                                                  "finetune": {"qf_coef": 50.0, "eta": 1.0}}},
     label=lambda run, finetune: fb_finetune_label("fb", finetune), column=1))

@@ -4,8 +4,7 @@ forward and inverse models on ``(s_t, a_t, s_{t+n})``."""
 
 from __future__ import annotations
 
-from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGFinetuneConfig, DDPGFinetuner, IntrinsicDDPGAgent
-from dvfb.agents.protocols import PolicyEvaluationConfig
+from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.rewards.icm import ICMAPTConfig, ICMAPTReward
 
@@ -21,6 +20,5 @@ class ICMAPTAgent(IntrinsicDDPGAgent):
 register(AgentSpec(
     name="icm_apt", agent_cls=ICMAPTAgent, family="exploration",
     summary="ICM-APT: DDPG on the kNN entropy of an ICM representation (Liu & Abbeel, URLB)",
-    sections={"ddpg": DDPGConfig, "icm_apt": ICMAPTConfig}, zero_shot="single_policy",
-    inference=PolicyEvaluationConfig, finetune=DDPGFinetuneConfig, finetuner=DDPGFinetuner,
+    sections={"ddpg": DDPGConfig, "icm_apt": ICMAPTConfig}, zero_shot="single_policy", finetuner="urlb",
     presets={"small": {"ddpg": DDPG_SMALL, "icm_apt": {"hidden_dim": 256, "rep_dim": 128}}}))

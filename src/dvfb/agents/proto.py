@@ -4,8 +4,7 @@ Fine-tuning copies the whole pre-trained critic (URLB's Proto), not only its tru
 
 from __future__ import annotations
 
-from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGFinetuneConfig, DDPGFinetuner, IntrinsicDDPGAgent
-from dvfb.agents.protocols import PolicyEvaluationConfig
+from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.rewards.proto import ProtoConfig, ProtoReward
 
@@ -21,6 +20,5 @@ class ProtoAgent(IntrinsicDDPGAgent):
 register(AgentSpec(
     name="proto", agent_cls=ProtoAgent, family="exploration",
     summary="Proto: DDPG on a prototype-queue kNN distance of the next state (Yarats et al.)",
-    sections={"ddpg": DDPGConfig, "proto": ProtoConfig}, zero_shot="single_policy",
-    inference=PolicyEvaluationConfig, finetune=DDPGFinetuneConfig, finetuner=DDPGFinetuner,
+    sections={"ddpg": DDPGConfig, "proto": ProtoConfig}, zero_shot="single_policy", finetuner="urlb",
     presets={"small": {"ddpg": DDPG_SMALL}}, defaults={"finetune": {"init_critic": "all"}}))

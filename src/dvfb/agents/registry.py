@@ -2,7 +2,8 @@
 
 Everything above the agents asks the registry, never a hard-coded list: the ``--agent`` choices and
 the agent's config flags of the CLI, the run config's sections (typed, strict), the presets, the
-zero-shot strategy and fine-tuner of the method's family, and the method labels of the reports.
+names of the zero-shot and fine-tuning protocols of the method's family, and the method labels of
+the reports.
 Adding a method is its own module ending in :func:`register`, plus one import line in
 :mod:`dvfb.agents` (docs/adding_a_method.md).
 """
@@ -14,24 +15,21 @@ from typing import Any, Callable
 
 from dvfb.errors import ConfigError
 
-# Zero-shot strategies a family can choose (implemented in dvfb.workflows.zeroshot):
-#   reward_inference -- collect reward-labelled steps, the agent infers the task's skill (FB, SF);
-#   single_policy    -- methods without skills: evaluate the one policy (RND, Disagreement, ...).
-ZERO_SHOT_STRATEGIES = ("reward_inference", "single_policy")
-
 
 @dataclass(frozen=True)
 class AgentSpec:
     """What the rest of the package needs to know about a method.
 
     ``sections`` are the agent's typed config sections, each a dataclass that becomes a section
-    of the run config (``--SECTION.FIELD`` flags). ``inference`` and ``finetune`` are the config
-    classes of the family's zero-shot and fine-tuning protocols; ``finetuner`` is built as
-    ``finetuner(agent, skill, finetune_config)``. ``presets`` maps a preset name to overrides of
-    the run config (missing presets mean the spec's values); ``defaults`` overrides the run
-    config's top-level fields for this method. ``label(run_config, finetune_config)`` names the
-    method in reports (variants such as ``dvfb_wo_ce``); by default the agent's name. ``column``
-    orders the report's columns.
+    of the run config (``--SECTION.FIELD`` flags). ``zero_shot`` and ``finetuner`` name the
+    registered protocols of the method's family (docs/methods.md, "Protocols"): their config
+    classes become the run config's ``inference`` and ``finetune`` sections. ``presets`` maps a
+    preset name to overrides of the run config (missing presets mean the spec's values);
+    ``defaults`` overrides the run config's fields for this method. ``label(run_config,
+    finetune_config)`` names the method in reports (variants such as ``dvfb_wo_ce``); by default
+    the agent's name. ``column`` orders the report's columns. ``moved_fields`` maps a top-level
+    field of configs written by older versions to where it lives now (``"update_z_every":
+    "fb.skill_every"``; None: dropped), so that old run directories still load.
     """
 
     name: str
@@ -40,17 +38,12 @@ class AgentSpec:
     family: str
     sections: dict[str, type]
     zero_shot: str
-    inference: type
-    finetune: type
-    finetuner: type
+    finetuner: str
     presets: dict[str, dict] = field(default_factory=dict)
     defaults: dict[str, Any] = field(default_factory=dict)
     label: Callable[[Any, Any], str] | None = None
     column: int = 100  # position of the method's columns in report tables (ties: registry order)
-
-    def __post_init__(self) -> None:
-        if self.zero_shot not in ZERO_SHOT_STRATEGIES:
-            raise ValueError(f"{self.name}: zero_shot must be one of {ZERO_SHOT_STRATEGIES}")
+    moved_fields: dict[str, str | None] = field(default_factory=dict)
 
     def method_label(self, run_config: Any, finetune_config: Any = None) -> str:
         """The report's name for a run (configs as dataclasses or dicts)."""

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGFinetuneConfig, DDPGFinetuner, IntrinsicDDPGAgent
-from dvfb.agents.protocols import PolicyEvaluationConfig
+from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.config import param
 from dvfb.rewards.rnd import RND_INPUTS, RNDReward
@@ -36,6 +35,5 @@ class RNDAgent(IntrinsicDDPGAgent):
 register(AgentSpec(
     name="rnd", agent_cls=RNDAgent, family="exploration",
     summary="RND: DDPG on the error of a predictor chasing a frozen random network (Burda et al.)",
-    sections={"ddpg": DDPGConfig, "rnd": RNDConfig}, zero_shot="single_policy",
-    inference=PolicyEvaluationConfig, finetune=DDPGFinetuneConfig, finetuner=DDPGFinetuner,
+    sections={"ddpg": DDPGConfig, "rnd": RNDConfig}, zero_shot="single_policy", finetuner="urlb",
     presets={"small": {"ddpg": DDPG_SMALL, "rnd": {"hidden_dim": 256, "rep_dim": 128}}}))

@@ -97,7 +97,8 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
     """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary."""
     from dvfb import envs
     from dvfb.runs import write_json_atomic
-    from dvfb.workflows.common import load_pretrained_agent, open_pretrained_run, seed_everything
+    from dvfb.training.seeding import seed_everything
+    from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 
     if actions not in ACTION_MODES:
         raise AnalysisError(f"--actions must be one of {', '.join(ACTION_MODES)}, got {actions!r}")

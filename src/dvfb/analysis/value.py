@@ -3,14 +3,13 @@
 Protocol (``dvfb analyze-value RUN --task T``):
 
 1. infer z_r for the task exactly as zero-shot does (docs/methods.md §8.1-8.2, through
-   :func:`dvfb.workflows.evaluate.collect_inference_data` and
-   :func:`dvfb.workflows.zeroshot.infer_task_vector`, budgets from ``--inference.*``);
+   the run's zero-shot protocol, budgets from ``--inference.*``);
 2. build K skills: z_r itself and K-1 skills ``proj((1 - lam) z_r + lam z_k)`` with prior draws
    ``z_k ~ p(z)`` and ``lam`` evenly spaced in (0, 1] (``lam = 1`` is a pure prior draw), so the
    returns range from z_r's down to a random skill's;
 3. roll out R mean-action episodes per skill in the task (the §8.3 evaluation policy);
 4. per trajectory: its return, and the skill value at its start
-   ``Q_M = min_k F_k(s0, a0, z_r) . z_r`` (:meth:`FBAgent.skill_value`, ``a0`` the trajectory's
+   ``Q_M = min_k F_k(s0, a0, z_r) . z_r`` (:meth:`Agent.skill_value`, ``a0`` the trajectory's
    first action) -- the value the dual-value fine-tuning uses for the task. Also recorded:
    ``F(s0, a0, z) . z_r`` with the trajectory's own skill z (the FB estimate of that skill's
    task value);
@@ -118,12 +117,12 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
                   device: str | None = None) -> dict:
     """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary."""
     from dvfb import envs
-    from dvfb.config import merge, to_dict
-    from dvfb.nets import skill_values
+    from dvfb.config import to_dict
     from dvfb.runs import write_json_atomic
-    from dvfb.workflows.common import check_task_in_domain, load_pretrained_agent, open_pretrained_run, seed_everything
-    from dvfb.workflows.evaluate import collect_inference_data
-    from dvfb.workflows.zeroshot import infer_task_vector
+    from dvfb.training.seeding import seed_everything
+    from dvfb.workflows.resources import check_task_in_domain
+    from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
+    from dvfb.workflows.zeroshot import run_protocol
 
     if episodes_per_skill < 1:
         raise AnalysisError("--episodes-per-skill must be at least 1")
@@ -131,22 +130,23 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
         raise AnalysisError("--max-steps must be at least 1")
     run, config = open_pretrained_run(run_path)
     check_task_in_domain(task, config.domain)
-    cfg = merge(config.inference, inference or {}, "inference.")
+    protocol = run_protocol(config, inference)
     out_dir = run.path / "analysis"
     outputs = [out_dir / f"value_{task}.{ext}" for ext in ("csv", "png", "json")]
     existing = [p for p in outputs if p.exists()]
     if existing and not overwrite:
         raise AnalysisError(f"{existing[0]} exists; pass --overwrite to replace it")
     agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
+    if not agent.learns_skill_value:
+        raise AnalysisError(f"agent {config.agent!r} learns no skill value (analyze-value needs a method that does, "
+                            "such as fb or dvfb)")
     seed = config.seed if seed is None else seed
     rng = seed_everything(seed)
     started = time.time()
     max_len = envs.TASKS[task].episode_length
 
     env = envs.make(task, seed=seed)
-    buffer = collect_inference_data(agent, env, cfg.steps, cfg.random_action_steps, rng, max_len)
-    z_r, info = infer_task_vector(agent, buffer, cfg)
-    del buffer
+    z_r, info = protocol.task_skill(agent, env, rng, max_len)
     generator = torch.Generator().manual_seed(seed)
     zs, lam = skill_set(z_r, skills, generator)
 
@@ -162,9 +162,8 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
     own_z = zs[[r["skill"] for r in rows]].to(agent.device)
     task_z = z_r.to(agent.device)
     value = agent.skill_value(obs0, act0, task_z).cpu().numpy().astype(float)
-    with torch.no_grad():
-        forward = agent.forward_map(obs0, act0, own_z)  # (2, N, d): the successor features of each own skill
-        own_value = skill_values(forward, task_z.expand_as(own_z)).amin(0).cpu().numpy().astype(float)
+    # The task value of following each trajectory's own skill (FB: F(s0, a0, z) . z_r).
+    own_value = agent.skill_value(obs0, act0, own_z, task=task_z).cpu().numpy().astype(float)
     returns = np.array([r["return"] for r in rows], dtype=float)
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -186,7 +185,7 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
         "spearman": rho, "spearman_own_skill": spearman(own_value, returns), "bins": binned_spearman(value, returns, bins),
         "return_mean": float(returns.mean()), "return_min": float(returns.min()), "return_max": float(returns.max()),
         "z_r_return_mean": float(returns[lam[[r["skill"] for r in rows]] == 0].mean()),
-        "inference": to_dict(cfg), "inference_info": info, "wall_clock_s": time.time() - started,
+        "inference": to_dict(protocol.config), "inference_info": info, "wall_clock_s": time.time() - started,
         "files": [str(p) for p in outputs],
     }
     _scatter(outputs[1], value, returns, lam[[r["skill"] for r in rows]], task, config.agent, rho)

@@ -142,23 +142,19 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:
 def _task_vector(run, config, agent, task: str, snapshot: int, final: int, inference: dict | None,
                  seed: int, infer: bool) -> tuple[torch.Tensor, str]:
     from dvfb import envs
-    from dvfb.config import merge
-    from dvfb.workflows.common import seed_everything
-    from dvfb.workflows.evaluate import collect_inference_data
-    from dvfb.workflows.zeroshot import infer_task_vector, result_path
+    from dvfb.training.seeding import seed_everything
+    from dvfb.workflows.zeroshot import result_path, run_protocol
 
     stored = result_path(run, task, snapshot, final)
     if stored.is_file() and not infer:
         data = read_json(stored)
         if isinstance(data.get("z"), list) and data.get("snapshot_frames") == snapshot:
             return torch.tensor(data["z"], dtype=torch.float32, device=agent.device), f"z from {stored}"
-    cfg = merge(config.inference, inference or {}, "inference.")
+    protocol = run_protocol(config, inference)
     rng = seed_everything(seed)
     env = envs.make(task, seed=seed)
-    buffer = collect_inference_data(agent, env, cfg.steps, cfg.random_action_steps, rng,
-                                    envs.TASKS[task].episode_length)
-    z, _info = infer_task_vector(agent, buffer, cfg)
-    return z, f"z inferred from {cfg.steps} reward-labelled steps"
+    z, _info = protocol.task_skill(agent, env, rng, envs.TASKS[task].episode_length)
+    return z, f"skill found by {protocol.name} in {protocol.task_steps()} reward-labelled steps"
 
 
 def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str | Path | None = None,
@@ -167,7 +163,8 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
                  seed: int | None = None, infer: bool = False, overwrite: bool = False,
                  device: str | None = None) -> dict:
     """Render ``episodes`` evaluation episodes of the run's zero-shot policy on ``task`` into one video."""
-    from dvfb.workflows.common import check_task_in_domain, load_pretrained_agent, open_pretrained_run
+    from dvfb.workflows.resources import check_task_in_domain
+    from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 
     for name, value in (("--episodes", episodes), ("--frame-skip", frame_skip), ("--height", height),
                         ("--width", width)):

@@ -241,10 +241,23 @@ def _exit_reason(log: Path, offset: int, returncode: int) -> str:
     return f"{ending}: {lines[-1]}" if lines else ending
 
 
+# The command line's entry point, for the debug executor. The CLI hands it down when it starts a
+# sweep (sweeps never import the CLI, which stands above them).
+_in_process_main = None
+
+
+def use_in_process(main) -> None:
+    """Run the debug executor's phases with ``main(argv) -> exit code`` (the ``dvfb`` command)."""
+    global _in_process_main
+    _in_process_main = main
+
+
 def _run_in_process(argv: list[str], log: Path) -> int:
     """``dvfb ARGV`` in this process (debug executor), its error output copied to the log."""
-    from dvfb.cli import main
-
+    main = _in_process_main
+    if main is None:
+        raise DvfbError("the debug executor runs dvfb commands in this process: start the sweep with the dvfb "
+                        "command (dvfb sweep run ... --executor debug)")
     errors = io.StringIO()
     try:
         with contextlib.redirect_stderr(errors):

@@ -29,7 +29,8 @@ import torch
 
 from dvfb.agents import get_spec
 from dvfb.agents.perf import PerfConfig
-from dvfb.agents.protocols import InferenceConfig
+from dvfb.protocols import protocols_of
+from dvfb.protocols.zero_shot import InferenceConfig
 from dvfb.config import from_dict, merge, param, replace, require_updates
 from dvfb.errors import ConfigError
 from dvfb.runs import read_json
@@ -56,8 +57,6 @@ class PretrainConfig:
     torch_threads: int = param(0, "torch.set_num_threads; 0 keeps torch's default.", at_least=0)
     seed_frames: int = param(4000, "Uniform-action steps before the first update.", at_least=0)
     update_every: int = param(2, "One gradient update every this many steps.", at_least=1)
-    update_z_every: int = param(300, "Methods with skills: resample the rollout skill when the step counter is a "
-                                "multiple of this (and at every episode start).", at_least=1)
     replay_capacity: int = param(1_000_000, "Replay capacity in transitions.", at_least=1)
     snapshot_frames: list[int] = param([100_000, 500_000, 1_000_000, 2_000_000],
                                        "Frames at which agent snapshots are kept (the final frame always is).",
@@ -80,13 +79,21 @@ def run_config_class(agent: str) -> type:
     spec = get_spec(agent)
     fields = [(name, cls, field(default_factory=cls, metadata={"help": (cls.__doc__ or name).splitlines()[0]}))
               for name, cls in spec.sections.items()]
-    fields += [("inference", spec.inference, field(default_factory=spec.inference, metadata={"help": "Zero-shot."})),
-               ("finetune", spec.finetune, field(default_factory=spec.finetune, metadata={"help": "Fine-tuning."}))]
+    fields += protocol_fields(agent)
     name = "".join(part.capitalize() for part in agent.split("_")) + "RunConfig"
     cls = dataclasses.make_dataclass(name, fields, bases=(PretrainConfig,))
     cls.__module__ = __name__
     cls.__doc__ = f"The run config of {agent!r}: {spec.summary}."
     return cls
+
+
+def protocol_fields(agent: str) -> list[tuple]:
+    """The ``inference`` and ``finetune`` sections of a method's configs: its protocols' configs."""
+    zero_shot, finetuner = protocols_of(agent)
+    return [("inference", zero_shot.config_cls,
+             field(default_factory=zero_shot.config_cls, metadata={"help": f"Zero-shot ({zero_shot.name})."})),
+            ("finetune", finetuner.config_cls,
+             field(default_factory=finetuner.config_cls, metadata={"help": f"Fine-tuning ({finetuner.name})."}))]
 
 
 def agent_sections(config: Any) -> dict:
@@ -97,11 +104,23 @@ def agent_sections(config: Any) -> dict:
     return {name: dataclasses.asdict(getattr(config, name)) for name in spec.sections}
 
 
-# Runs written before the agent registry stored an ``exploration`` section in every config, also
-# for online FB, which ignored it; such a section of an FB run is dropped on reading.
 def _migrate(data: dict) -> dict:
-    if data.get("agent") == "fb" and "exploration" in data:
-        data = {k: v for k, v in data.items() if k != "exploration"}
+    """Configs written by older versions, read as today's.
+
+    * A top-level field or section that moved into a method's section (``moved_fields`` of its spec, e.g.
+      the skill resampling period ``update_z_every`` -> ``fb.skill_every``) is moved there; one it
+      maps to None is dropped (online FB's configs once carried DVFB's unused ``exploration``).
+      A skill period of a method without skills, which never used it, is dropped too.
+    """
+    spec = get_spec(data["agent"])
+    data = dict(data)
+    for old, new in spec.moved_fields.items():
+        if old in data:
+            value = data.pop(old)
+            if new is not None:  # None: a field the method's runs carried but never used
+                section, key = new.split(".", 1)
+                data[section] = {**data.get(section, {}), key: value}
+    data.pop("update_z_every", None)  # methods without skills ignored the global period
     return data
 
 

@@ -1,10 +1,11 @@
 """Fine-tuning of a pre-trained run on a task (docs/methods.md §9; docs/methods.md, "Protocols").
 
-Protocol: load the snapshot; obtain the task's skill by the family's zero-shot strategy (FB family:
-collect the inference steps and infer z_r, §8.1-8.2; methods without skills: none); evaluate
-zero-shot (the curve's point at 0 frames); build the family's fine-tuner (dual-value for the FB
-family, URLB's for the DDPG agents); then ``finetune.frames`` steps of rollouts with
-``pi(s, skill)`` (uniform actions during ``seed_frames`` where the fine-tuner asks for them), one
+Protocol: load the snapshot; obtain the task's skill by the method's registered zero-shot protocol
+(FB family: collect the inference steps and infer z_r, §8.1-8.2; skill discovery: select the best
+prior skill; methods without skills: none); evaluate zero-shot (the curve's point at 0 frames);
+build the method's registered fine-tuner (dual-value for the FB family, URLB's for the DDPG
+agents); then ``finetune.frames`` steps of rollouts with ``pi(s, skill)`` (the skill of every step
+from the fine-tuner; uniform actions during ``seed_frames`` where it asks for them), one
 fine-tuner update every ``update_every`` steps after ``seed_frames``, and an evaluation every
 ``eval_every`` steps.
 
@@ -25,6 +26,7 @@ import torch
 
 from dvfb import envs
 from dvfb.agents import get_spec
+from dvfb.protocols import finetuner_class, zero_shot_protocol
 from dvfb.config import from_dict, merge, param, to_dict
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.replay import ReplayBuffer
@@ -39,19 +41,11 @@ from dvfb.runs import (
     save_checkpoint,
     write_json_atomic,
 )
-from dvfb.workflows.common import (
-    MetricWindow,
-    Progress,
-    ResumeCheckpoints,
-    check_action,
-    check_task_in_domain,
-    load_pretrained_agent,
-    notify,
-    open_pretrained_run,
-    restore_rng_state,
-    rng_state,
-    seed_everything,
-)
+from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, check_action, notify
+from dvfb.training.seeding import restore_rng_state, rng_state, seed_everything
+from dvfb.workflows.resources import check_task_in_domain
+from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
+from dvfb.workflows.config import protocol_fields
 from dvfb.workflows.evaluate import Evaluation, evaluate_policy
 from dvfb.workflows.zeroshot import task_skill
 
@@ -78,11 +72,8 @@ class FinetuneRunConfig:
 @functools.cache
 def finetune_run_config_class(agent: str) -> type:
     spec = get_spec(agent)
-    cls = dataclasses.make_dataclass(
-        f"{spec.agent_cls.__name__}FinetuneRunConfig",
-        [("inference", spec.inference, field(default_factory=spec.inference, metadata={"help": "Zero-shot part."})),
-         ("finetune", spec.finetune, field(default_factory=spec.finetune, metadata={"help": "Fine-tuning part."}))],
-        bases=(FinetuneRunConfig,))
+    cls = dataclasses.make_dataclass(f"{spec.agent_cls.__name__}FinetuneRunConfig", protocol_fields(agent),
+                                     bases=(FinetuneRunConfig,))
     cls.__module__ = __name__
     return cls
 
@@ -168,9 +159,11 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
     max_len = envs.TASKS[task].episode_length
     replay = ReplayBuffer(cfg.replay_capacity, agent.obs_dim, agent.action_dim, agent.skill_dim,
                           max_episode_length=max_len, device=agent.device)
-    finetuner_cls = get_spec(config.agent).finetuner
+    finetuner_cls = finetuner_class(get_spec(config.agent).finetuner)
+    # The fine-tuner's own random stream for rollout skills it redraws (--finetune.skill resample).
+    skill_generator = torch.Generator(device=agent.device).manual_seed(run_config.seed)
     started = time.time()
-    episode_start, obs = True, None
+    episode_start, obs, skill = True, None, None
 
     if state is not None:
         try:
@@ -181,10 +174,14 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
             restore_rng_state(state["rng"], rng)
             env.unwrapped.set_rng_state(state["env_rng"])
             eval_env.unwrapped.set_rng_state(state["eval_env_rng"])
+            if "skill_generator" in state:
+                skill_generator.set_state(state["skill_generator"])
             step, curve, inference_info = state["step"], state["curve"], state["inference_info"]
             if state.get("episode_state") is not None:  # written mid-episode on a signal
                 env.unwrapped.set_episode_state(state["episode_state"]["env"])
                 obs = np.asarray(state["episode_state"]["obs"], dtype=np.float32)
+                skill = state["episode_state"].get("skill", z)
+                skill = None if skill is None else skill.to(agent.device)
                 episode_start = False
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
             raise CheckpointError(f"cannot resume {path}: the checkpoint does not fit this run ({exc})") from exc
@@ -192,21 +189,22 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
         notify(f"[finetune] resuming {path} from step {step} (of {cfg.frames})")
         logger = MetricsLogger(ft_run, purge_step=step + 1)
     else:
-        keep = getattr(cfg, "keep_inference_data", False)
-        z, inference_info = task_skill(agent, run, config, task, run_config.inference, rng, run_config.seed,
+        keep = finetuner_cls.keeps_inference_data(cfg)
+        protocol = zero_shot_protocol(get_spec(config.agent).zero_shot)(run_config.inference)
+        z, inference_info = task_skill(agent, run, config, task, protocol, rng, run_config.seed,
                                        keep_data=keep, env=env)
         if keep:
             _copy_transitions(inference_info.pop("buffer"), replay, z)
         # The inference data are discarded (§8.2 step 6) unless kept above.
         finetuner = finetuner_cls(agent, z, cfg)
         logger = MetricsLogger(ft_run)
-        curve = [_curve_point(0, evaluate_policy(agent, eval_env, z, cfg.eval_episodes))]
+        curve = [_curve_point(0, evaluate_policy(agent, eval_env, finetuner.skill, cfg.eval_episodes))]
         logger.log(0, _eval_metrics(curve[-1]), prefix="eval")
         step = 0
     _write_curve(ft_run, run_config, curve, inference_info, z)
 
-    window = MetricWindow()
-    z_host = None if z is None else z.cpu().numpy()  # the skill is fixed: copied to the host once
+    window = MetricWindow(agent.nonfinite_hint)
+    skill_host = None if skill is None else skill.cpu().numpy()
     needs = finetuner.replay_needs()
     action_dim = agent.action_dim
     bar = Progress(cfg.frames, step, f"finetune {task}", progress)
@@ -217,8 +215,10 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
             "inference_info": inference_info, "finetuner": finetuner.training_state(),
             "replay": replay.state_dict(), "rng": rng_state(rng),
             "env_rng": env.unwrapped.get_rng_state(), "eval_env_rng": eval_env.unwrapped.get_rng_state()}
+        checkpoint["skill_generator"] = skill_generator.get_state()
         if mid_episode:
-            checkpoint["episode_state"] = {"env": env.unwrapped.get_episode_state(), "obs": torch.as_tensor(obs)}
+            checkpoint["episode_state"] = {"env": env.unwrapped.get_episode_state(), "obs": torch.as_tensor(obs),
+                                           "skill": None if skill is None else skill.cpu()}
         save_checkpoint(ft_run, checkpoint, f"resume_{step}")
 
     checkpoints = ResumeCheckpoints(save_resume, window, cfg.checkpoint_every, cfg.frames, "fine-tuning",
@@ -226,19 +226,24 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
     try:
         with checkpoints:
             while step < cfg.frames:
+                starting = episode_start
                 if episode_start:
                     obs, _ = env.reset()
                     replay.start_episode(obs)
                     episode_start = False
+                drawn = finetuner.rollout_skill(step, starting, skill, skill_generator)
+                if drawn is not skill:  # copied to the host once per new skill, not every step
+                    skill = drawn
+                    skill_host = None if skill is None else skill.cpu().numpy()
                 if finetuner.uniform_seed_actions and step < cfg.seed_frames:
                     action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
                 else:
-                    action = agent.act(obs, z, explore=True)
+                    action = agent.act(obs, skill, explore=True)
                 if step >= cfg.seed_frames and step % cfg.update_every == 0:
                     window.add(step, finetuner.update(needs.sample(replay)))
                 check_action(action, step, window)
                 obs, reward, terminated, truncated, _ = env.step(action)
-                replay.add(action, reward, 0.0 if terminated else 1.0, obs, z_host)
+                replay.add(action, reward, 0.0 if terminated else 1.0, obs, skill_host)
                 step += 1
                 bar.update(1)
                 if step % 1000 == 0 or step == cfg.frames:
@@ -246,7 +251,7 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
                     if means:
                         logger.log(step, means, prefix="train")
                 if step % cfg.eval_every == 0 or step == cfg.frames:
-                    curve.append(_curve_point(step, evaluate_policy(agent, eval_env, z, cfg.eval_episodes)))
+                    curve.append(_curve_point(step, evaluate_policy(agent, eval_env, finetuner.skill, cfg.eval_episodes)))
                     logger.log(step, _eval_metrics(curve[-1]), prefix="eval")
                     _write_curve(ft_run, run_config, curve, inference_info, z)
                 if terminated or truncated:

@@ -2,9 +2,10 @@
 
 The loop, per environment step ``t``:
 
-* at an episode start: reset, draw a skill from the method's prior (``z ~ p(z)`` for FB; none for
-  methods without skills), store the reset observation;
-* if ``t % update_z_every == 0``: draw a new rollout skill (§5.2);
+* at an episode start: reset, store the reset observation;
+* draw a new rollout skill from the method's prior when its declared rule says so
+  (``agent.skill.due(t, episode_start)``: for FB at every episode start and when ``t`` is a multiple
+  of ``fb.skill_every``, §5.2; never for methods without skills);
 * act uniformly while ``t < seed_frames``, otherwise with a rollout sample of ``pi(s, skill)``;
 * if ``t >= seed_frames`` and ``t % update_every == 0``: one agent update on a batch drawn as the
   agent's :class:`~dvfb.agents.base.ReplayNeeds` say (before stepping, as the authors' code does);
@@ -45,21 +46,10 @@ from dvfb.runs import (
     save_snapshot,
     write_json_atomic,
 )
-from dvfb.workflows.common import (
-    MetricWindow,
-    Progress,
-    ResumeCheckpoints,
-    check_action,
-    check_memory,
-    learner_state_bytes,
-    notify,
-    restore_rng_state,
-    rng_state,
-    seed_everything,
-    setup_torch,
-    snapshot_name,
-    snapshot_state,
-)
+from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, check_action, notify
+from dvfb.training.seeding import restore_rng_state, rng_state, seed_everything
+from dvfb.workflows.resources import check_memory, learner_state_bytes, setup_torch
+from dvfb.workflows.snapshots import snapshot_name, snapshot_state
 from dvfb.workflows.config import PretrainConfig, load_run_config
 
 log = logging.getLogger(__name__)
@@ -177,7 +167,7 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
 
     # Records up to the checkpointed step belong to the restored state; later ones are redone.
     logger = MetricsLogger(run, purge_step=step + 1 if resume else None)
-    window = MetricWindow()
+    window = MetricWindow(agent.nonfinite_hint)
     snapshots = set(config.snapshot_frames) | {config.frames}
     bar = Progress(config.frames, step, f"pretrain {config.agent} {config.domain}", progress)
     started = time.time()
@@ -205,13 +195,13 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
     try:
         with checkpoints:
             while step < config.frames:
+                starting = episode_start
                 if episode_start:
                     obs, _ = env.reset(seed=config.seed) if first_reset else env.reset()
                     first_reset = False
-                    draw_skill()
                     replay.start_episode(obs)
                     episode_return, episode_start = 0.0, False
-                if step % config.update_z_every == 0:
+                if agent.skill.due(step, starting):
                     draw_skill()
                 if step < config.seed_frames:
                     action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)

@@ -15,15 +15,15 @@ from torch import nn
 
 from dvfb.agents.base import ReplayNeeds
 from dvfb.agents.fb import FBAgent, implicit_reward
-from dvfb.agents.protocols import FinetuneProtocol
 from dvfb.config import param
+from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner
 from dvfb.nets import (RunningMeanStd, TwinCritic, adam, freeze_, make_target, skill_values, soft_update_,
                        training_action, twin_td_loss)
 from dvfb.replay import Batch
 
 
 @dataclass
-class FinetuneConfig(FinetuneProtocol):
+class FinetuneConfig(FinetuneSchedule):
     """Dual-value fine-tuning of the FB family: the protocol plus the options of §9, §12, §14."""
 
     eta: float = param(0.5, "Weight of the skill value Q_M in the actor objective; 0 = w/o SVF (D3).", at_least=0)
@@ -37,16 +37,19 @@ class FinetuneConfig(FinetuneProtocol):
     keep_inference_data: bool = param(False, "Seed the fine-tuning buffer with the inference transitions (D12).")
 
 
-class DualValueFinetuner(nn.Module):
+@register_finetuner
+class DualValueFinetuner(Finetuner):
     """Q_F training and the dual-value actor on top of a pre-trained FB-family agent (§9.2-§9.5).
 
     Rollouts use ``pi(s, z_r)`` from the first step (no uniform phase, §9.1).
     """
 
+    name = "dual_value"
+    config_cls = FinetuneConfig
     uniform_seed_actions = False
 
     def __init__(self, agent: FBAgent, z: torch.Tensor, config: FinetuneConfig):
-        super().__init__()
+        nn.Module.__init__(self)
         self.agent, self.config = agent, config
         fb = agent.config
         freeze_(agent.forward_map)
@@ -59,6 +62,14 @@ class DualValueFinetuner(nn.Module):
         self.critic_optimizer = adam(self.task_critic.parameters(), fb.lr, fb.fused_adam)
         # A fresh actor optimiser (§3.6: the authors do not carry the pre-training state over).
         self.actor_optimizer = adam(agent.actor.parameters(), fb.lr, fb.fused_adam)
+
+    @property
+    def skill(self) -> torch.Tensor:
+        return self.z
+
+    @classmethod
+    def keeps_inference_data(cls, config: FinetuneConfig) -> bool:
+        return config.keep_inference_data
 
     def replay_needs(self) -> ReplayNeeds:
         fb = self.agent.config

@@ -1,0 +1,68 @@
+"""Parameter hashes after three updates of every registered method on a fixed replay (fp32).
+
+Before and after a refactor, the same method must print the same hash: its update is then
+bit-identical on the same batch and random draws. Run from the repository root:
+
+    python scripts/update_hashes.py [AGENT ...]
+
+It uses the tiny test configs (tests/tiny.py) on point_mass_maze: a replay of 400 uniform-action
+steps with skills from the method's prior, torch seed 0, three updates.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from dvfb import envs  # noqa: E402
+from dvfb.agents import agent_names, make_agent  # noqa: E402
+from dvfb.replay import ReplayBuffer  # noqa: E402
+from tiny import tiny_run_config  # noqa: E402
+
+
+def filled_replay(agent, obs_dim: int, action_dim: int, steps: int = 400) -> ReplayBuffer:
+    rng = np.random.default_rng(0)
+    env = envs.make("point_mass_maze_reach_top_left", seed=0)
+    replay = ReplayBuffer(10_000, obs_dim, action_dim, agent.skill_dim, max_episode_length=1000)
+    obs, _ = env.reset(seed=0)
+    replay.start_episode(obs)
+    for t in range(steps):
+        if t == steps // 2:
+            obs, _ = env.reset()
+            replay.start_episode(obs)
+        skill = agent.sample_skill(1)
+        action = rng.uniform(-1, 1, action_dim).astype(np.float32)
+        obs, reward, terminated, _, _ = env.step(action)
+        replay.add(action, reward, 0.0 if terminated else 1.0, obs, None if skill is None else skill[0].numpy())
+    return replay
+
+
+def update_hash(name: str) -> str:
+    torch.manual_seed(0)
+    env = envs.make("point_mass_maze_reach_top_left")
+    obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    agent = make_agent(name, obs_dim, action_dim, tiny_run_config(name), "cpu")
+    replay = filled_replay(agent, obs_dim, action_dim)
+    needs = agent.replay_needs()
+    for _ in range(3):
+        agent.update(needs.sample(replay))
+    digest = hashlib.sha256()
+    for key, tensor in sorted(agent.state_dict().items()):
+        digest.update(key.encode())
+        if isinstance(tensor, torch.Tensor):
+            digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+        else:  # extra state (Proto's queue pointer)
+            digest.update(repr(tensor).encode())
+    return digest.hexdigest()[:16]
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    for agent_name in sys.argv[1:] or agent_names():
+        print(f"{agent_name:14s} {update_hash(agent_name)}")

@@ -1,0 +1,143 @@
+"""The two protocol interfaces and their registries (docs/methods.md, "Protocols").
+
+A method's :class:`~dvfb.agents.registry.AgentSpec` names one zero-shot protocol and one
+fine-tuner; each is a registered class with its own typed config, which becomes the run config's
+``inference`` and ``finetune`` section. Workflows, ``dvfb.load``, the CLI and the analyses call the
+protocol; none of them knows which family it serves.
+
+* :class:`ZeroShotProtocol` -- turns a pre-trained agent and a task into the skill its policy is
+  evaluated with (or None for a single policy), owning its data collection and its result fields;
+* :class:`Finetuner` -- trains a pre-trained agent on a task's reward: its updates, its replay
+  needs, the rollout skill of every step, and its resumable state;
+* :class:`FinetuneSchedule` -- the budget and schedule every fine-tuner's config shares.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+from torch import nn
+
+from dvfb.config import param, require_updates
+from dvfb.errors import ConfigError
+
+# Where the skill of a task can come from: interaction with the task (every protocol), samples of
+# states with rewards computed by a function, or a goal state (protocols that infer skills).
+SKILL_SOURCES = ("rewards", "reward_fn", "goal")
+
+
+class ZeroShotProtocol:
+    """Base class of the zero-shot protocols. A subclass sets ``name``, ``config_cls`` and
+    ``sources`` and implements :meth:`task_skill` (and :meth:`skill_from_samples` /
+    :meth:`skill_from_goal` when ``sources`` lists them)."""
+
+    name: ClassVar[str] = ""
+    config_cls: ClassVar[type]
+    sources: ClassVar[tuple[str, ...]] = ("rewards",)
+
+    def __init__(self, config: Any):
+        self.config = config
+
+    @property
+    def eval_episodes(self) -> int:
+        return self.config.eval_episodes
+
+    def task_steps(self, source: str = "rewards") -> int:
+        """Environment steps in the task before the evaluation (for progress bars)."""
+        return 0
+
+    def check_source(self, source: str, agent_name: str) -> None:
+        if source not in SKILL_SOURCES:
+            raise ConfigError(f"skill source must be one of {SKILL_SOURCES}, got {source!r}")
+        if source not in self.sources:
+            raise ConfigError(f"--z-source {source} needs a method that infers skills from data; {agent_name!r} "
+                              f"uses the {self.name} protocol (use the default)")
+
+    def task_skill(self, agent, env, rng: np.random.Generator, episode_length: int, *, progress=None,
+                   keep_data: bool = False) -> tuple[torch.Tensor | None, dict]:
+        """The skill for the task of ``env`` from interaction with it, and what the result file
+        records about how it was found."""
+        raise NotImplementedError
+
+    def skill_from_samples(self, agent, obs: torch.Tensor, next_obs: torch.Tensor,
+                           reward: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        raise ConfigError(f"the {self.name} protocol does not infer a skill from reward samples")
+
+    def skill_from_goal(self, agent, goal: np.ndarray) -> tuple[torch.Tensor, dict]:
+        raise ConfigError(f"the {self.name} protocol does not infer a skill from a goal")
+
+
+@dataclass
+class FinetuneSchedule:
+    """Budget and schedule of a fine-tuning run (§9 of docs/methods.md; URLB protocol)."""
+
+    frames: int = param(100_000, "Fine-tuning environment steps (the inference steps are not counted).", at_least=1)
+    eval_every: int = param(10_000, "Evaluate every this many fine-tuning steps (and at 0 and the end).", at_least=1)
+    eval_episodes: int = param(50, "Mean-action episodes per evaluation.", at_least=1)
+    seed_frames: int = param(4000, "Steps before the first update (uniform actions where the family uses "
+                             "them: URLB-style agents; FB-family agents act with pi(s, z_r)).", at_least=0)
+    update_every: int = param(2, "One update every this many steps.", at_least=1)
+    replay_capacity: int = param(1_000_000, "Fine-tuning replay capacity in transitions.", at_least=1)
+    checkpoint_every: int = param(10_000, "Write a resume checkpoint every this many steps (at episode ends).",
+                                  at_least=1)
+
+    def check(self) -> None:
+        require_updates("--finetune.frames", self.frames, "--finetune.seed-frames", self.seed_frames)
+
+
+class Finetuner(nn.Module):
+    """Base class of the fine-tuners: built as ``cls(agent, skill, config)`` from the pre-trained
+    agent and the skill its zero-shot protocol found (None for a single policy).
+
+    ``uniform_seed_actions``: act uniformly during ``seed_frames`` (URLB) or with the policy from
+    the first step (the FB family). :meth:`rollout_skill` gives the skill of every step (fixed by
+    default); :meth:`keeps_inference_data` says whether the zero-shot protocol's data seed the
+    fine-tuning replay.
+    """
+
+    name: ClassVar[str] = ""
+    config_cls: ClassVar[type] = FinetuneSchedule
+    uniform_seed_actions: ClassVar[bool] = True
+
+    def __init__(self, agent, skill: torch.Tensor | None, config: Any):
+        super().__init__()
+        self.agent, self.config = agent, config
+        self.skill = None if skill is None else skill.detach().clone().to(agent.device)
+
+    @classmethod
+    def keeps_inference_data(cls, config: Any) -> bool:
+        return False
+
+    def rollout_skill(self, step: int, episode_start: bool, current: torch.Tensor | None,
+                      generator: torch.Generator | None = None) -> torch.Tensor | None:
+        """The skill to act with at ``step``; ``current`` is the one of the previous step."""
+        return self.skill
+
+    def replay_needs(self):
+        return self.agent.replay_needs()
+
+    def update(self, batch) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    def training_state(self) -> dict:
+        raise NotImplementedError
+
+    def load_training_state(self, state: dict) -> None:
+        raise NotImplementedError
+
+
+ZERO_SHOT_PROTOCOLS: dict[str, type[ZeroShotProtocol]] = {}
+FINETUNERS: dict[str, type[Finetuner]] = {}
+
+
+def register_zero_shot(cls: type[ZeroShotProtocol]) -> type[ZeroShotProtocol]:
+    ZERO_SHOT_PROTOCOLS[cls.name] = cls
+    return cls
+
+
+def register_finetuner(cls: type[Finetuner]) -> type[Finetuner]:
+    FINETUNERS[cls.name] = cls
+    return cls

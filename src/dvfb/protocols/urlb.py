@@ -1,0 +1,105 @@
+"""URLB's fine-tuning of the DDPG-core methods (docs/methods.md, "Fine-tuning the URLB-style agents").
+
+The pre-trained actor is kept; the critic is fresh (the core's own :meth:`build_critic`, so APS's
+successor-feature critic and CeSD's ensemble are rebuilt as themselves), with its trunk
+(``init_critic="trunk"``) or all of it (``"all"``, Proto) copied from pre-training. The target
+critic is the copy of the *fresh* critic made before the trunk copy and is never re-synchronised
+(URLB's behaviour; it drifts to the trained one by the EMA). Optimisers are new; the intrinsic
+module is no longer used; the reward is the extrinsic n-step sum.
+
+The rollout skill of a method with skills (docs/methods.md, "Fine-tuning the URLB-style agents"):
+
+* ``selected`` (the paper's protocol, default) -- the skill the zero-shot protocol selected, fixed;
+* ``resample`` (the DVFB authors' driver for DIAYN, APS, SMM and CeSD) -- redrawn from the prior by
+  the method's pre-training rule;
+* ``random_fixed`` (BeCL's and the official CeSD driver) -- one prior draw, fixed for the run;
+* ``prior_mean`` (CIC's fine-tuning skill, 0.5 in every coordinate) -- the mean of a box prior.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from dvfb.agents.base import ReplayNeeds
+from dvfb.config import param
+from dvfb.errors import ConfigError
+from dvfb.nets import make_target
+from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner
+from dvfb.replay import Batch
+
+CRITIC_INITS = ("trunk", "all", "none")
+FINETUNE_SKILLS = ("selected", "resample", "random_fixed", "prior_mean")
+
+
+@dataclass
+class DDPGFinetuneConfig(FinetuneSchedule):
+    """URLB-style fine-tuning (docs/methods.md, "Fine-tuning the URLB-style agents")."""
+
+    init_critic: str = param("trunk", "What the fresh critic copies from pre-training: its trunk (URLB), all of "
+                             "it (Proto), or nothing.", CRITIC_INITS)
+    skill: str = param("selected", "Methods with skills: the selected skill, fixed (paper); resampled by the "
+                       "pre-training rule; one random prior draw, fixed; or the mean of a box prior (CIC's "
+                       "0.5). The inference steps that select a skill are not counted in --finetune.frames.",
+                       FINETUNE_SKILLS)
+
+
+@register_finetuner
+class DDPGFinetuner(Finetuner):
+    """Fine-tune a URLB-style agent on the extrinsic n-step reward (see the module docstring)."""
+
+    name = "urlb"
+    config_cls = DDPGFinetuneConfig
+    uniform_seed_actions = True
+
+    def __init__(self, agent, skill: torch.Tensor | None, config: DDPGFinetuneConfig):
+        super().__init__(agent, skill, config)
+        core = agent.core
+        fresh = core.build_critic().to(agent.device)
+        target = make_target(fresh)
+        if config.init_critic == "trunk":
+            fresh.trunk.load_state_dict(core.critic.trunk.state_dict())
+        elif config.init_critic == "all":
+            fresh.load_state_dict(core.critic.state_dict())
+        core.critic, core.critic_target = fresh, target
+        core.make_optimizers()
+        spec = agent.skill
+        if spec.has_skill and config.skill == "prior_mean":
+            if spec.kind != "box":
+                raise ConfigError(f"--finetune.skill prior_mean needs a box prior; {agent.name!r} has a "
+                                  f"{spec.kind} skill")
+            self.skill = torch.full((spec.dim,), (spec.low + spec.high) / 2, device=agent.device)
+        elif spec.has_skill and config.skill == "random_fixed":
+            self.skill = agent.sample_skill(1)[0]
+
+    def rollout_skill(self, step, episode_start, current, generator=None):
+        if self.config.skill == "resample" and self.agent.skill.has_skill:
+            if current is None or self.agent.skill.due(step, episode_start):
+                return self.agent.sample_skill(1, generator=generator)[0]
+            return current
+        return self.skill
+
+    def replay_needs(self) -> ReplayNeeds:
+        # The core's own batches: a method that asks for more rows in pre-training (BeCL's fresh
+        # batch per contrastive step) trains only its core here.
+        ddpg = self.agent.ddpg
+        return ReplayNeeds(ddpg.batch_size, ddpg.discount, nstep=ddpg.nstep)
+
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        metrics: dict[str, torch.Tensor] = {}
+        self.agent.core.update(batch, batch.reward, metrics, self.agent.net_runner)
+        return metrics
+
+    def training_state(self) -> dict:
+        core = self.agent.core
+        return {"core": core.state_dict(), "optimizers": {k: o.state_dict() for k, o in core.optimizers().items()},
+                "skill": None if self.skill is None else self.skill.cpu()}
+
+    def load_training_state(self, state: dict) -> None:
+        core = self.agent.core
+        core.load_state_dict(state["core"])
+        for k, o in core.optimizers().items():
+            o.load_state_dict(state["optimizers"][k])
+        if state.get("skill") is not None:
+            self.skill = state["skill"].to(self.agent.device)

@@ -1,0 +1,204 @@
+"""The zero-shot protocols (docs/methods.md, "Protocols"; §8).
+
+* :class:`RewardInference` (``reward_inference``; FB, DVFB): collect reward-labelled steps in the
+  task with prior skills, let the agent infer the task's skill from a sample of them
+  (:meth:`~dvfb.agents.base.Agent.infer_skill`); also from reward-function samples or a goal;
+* :class:`SinglePolicy` (``single_policy``; the exploration baselines): no skill, the one policy;
+* :class:`SkillSelection` (``skill_selection``; the skill-discovery methods, paper App. C.3): roll
+  out a new prior skill every episode for the same budget of reward-labelled steps, with mean
+  actions, and keep the skill of the best episode.
+
+Every protocol then evaluates the skill it found with mean actions (the workflow's part).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from dvfb.config import param
+from dvfb.errors import ConfigError
+from dvfb.protocols.base import ZeroShotProtocol, register_zero_shot
+from dvfb.replay import ReplayBuffer
+
+SELECTION_CANDIDATES = ("completed", "authors")
+
+
+@dataclass
+class InferenceConfig:
+    """Zero-shot task inference and evaluation (§8 of docs/methods.md)."""
+
+    steps: int = param(10_000, "Reward-labelled environment steps collected in the task.", at_least=1)
+    random_action_steps: int = param(4000, "Of those, the first steps use uniform actions.", at_least=0)
+    samples: int = param(10_000, "Transitions drawn from the inference data to infer z_r.", at_least=1)
+    with_replacement: bool = param(True, "Draw the inference samples with replacement (authors' code).")
+    reward_quantile: float | None = param(0.99, "Keep samples with reward >= this quantile; none = no filter.",
+                                          at_least=0, at_most=1)
+    eval_episodes: int = param(50, "Mean-action evaluation episodes with the inferred z_r.", at_least=1)
+
+    def check(self) -> None:
+        if self.random_action_steps > self.steps:
+            raise ConfigError(f"--inference.random-action-steps {self.random_action_steps} must be at most "
+                              f"--inference.steps {self.steps}")
+
+
+@dataclass
+class PolicyEvaluationConfig:
+    """Zero-shot of a method without skills: mean-action episodes of its single policy."""
+
+    eval_episodes: int = param(50, "Mean-action evaluation episodes of the pre-trained policy.", at_least=1)
+
+
+@dataclass
+class SkillSelectionConfig:
+    """Zero-shot of the skill-discovery methods: the best of the prior skills tried in the task."""
+
+    steps: int = param(10_000, "Reward-labelled steps in the task: a new prior skill at every episode start, "
+                       "mean actions.", at_least=1)
+    candidates: str = param("completed", "Which episodes compete: every one completed within the steps, or the "
+                            "authors' driver, which never records the episode that ends at the last step "
+                            "(9 candidates of 10).", SELECTION_CANDIDATES)
+    eval_episodes: int = param(50, "Mean-action evaluation episodes with the selected skill.", at_least=1)
+
+
+def collect_inference_data(agent, env, steps: int, random_action_steps: int, rng: np.random.Generator,
+                           max_episode_length: int = 1000, progress=None) -> ReplayBuffer:
+    """``steps`` reward-labelled steps in the task (§8.1).
+
+    A new skill from the method's prior at every step; uniform actions for the first
+    ``random_action_steps`` steps, then rollout samples of ``pi(s, skill)``.
+    """
+    obs_dim = env.observation_space.shape[0]
+    action_dim = env.action_space.shape[0]
+    buffer = ReplayBuffer(max(steps, max_episode_length), obs_dim, action_dim, z_dim=0,
+                          max_episode_length=max_episode_length, device=agent.device)
+    done = True
+    obs = None
+    for step in range(steps):
+        if done:
+            obs, _ = env.reset()
+            buffer.start_episode(obs)
+        z = agent.sample_skill(1)[0]
+        if step < random_action_steps:
+            action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
+        else:
+            action = agent.act(obs, z, explore=True)
+        obs, reward, terminated, truncated, _ = env.step(action)
+        buffer.add(action, reward, 0.0 if terminated else 1.0, obs)
+        done = terminated or truncated
+        if progress is not None:
+            progress.update(1)
+    return buffer
+
+
+def infer_task_vector(agent, buffer: ReplayBuffer, config: InferenceConfig) -> tuple[torch.Tensor, dict]:
+    """Draw the inference samples from ``buffer`` and let the agent infer the task's skill (§8.2)."""
+    data = buffer.transitions()
+    n = data.obs.shape[0]
+    if n == 0:
+        raise ConfigError("no reward-labelled transitions to infer z from (inference.steps is 0?)")
+    if config.with_replacement:
+        index = torch.randint(0, n, (config.samples,), device=data.obs.device)
+    else:
+        index = torch.randperm(n, device=data.obs.device)[: config.samples]
+    return agent.infer_skill(data.obs[index], data.next_obs[index], data.reward[index], config)
+
+
+def check_finite(name: str, values: torch.Tensor | np.ndarray) -> None:
+    """Non-finite rewards or goals would give a NaN skill silently: refuse them with one line."""
+    array = values.detach().cpu().numpy() if isinstance(values, torch.Tensor) else np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(array)):
+        raise ConfigError(f"{name} holds a non-finite value (NaN or inf); the skill would be NaN")
+
+
+@register_zero_shot
+class RewardInference(ZeroShotProtocol):
+    """Infer the task's skill from reward-labelled data (FB family, §8)."""
+
+    name = "reward_inference"
+    config_cls = InferenceConfig
+    sources = ("rewards", "reward_fn", "goal")
+
+    def task_steps(self, source: str = "rewards") -> int:
+        return self.config.steps if source == "rewards" else 0
+
+    def task_skill(self, agent, env, rng, episode_length, *, progress=None, keep_data=False):
+        buffer = collect_inference_data(agent, env, self.config.steps, self.config.random_action_steps, rng,
+                                        episode_length, progress=progress)
+        skill, info = infer_task_vector(agent, buffer, self.config)
+        if keep_data:
+            info["buffer"] = buffer
+        return skill, info
+
+    def skill_from_samples(self, agent, obs, next_obs, reward):
+        check_finite("the reward function's output", reward)
+        index = torch.randperm(reward.shape[0], device=reward.device)[: self.config.samples]
+        return agent.infer_skill(obs[index], next_obs[index], reward[index], self.config)
+
+    def skill_from_goal(self, agent, goal):
+        check_finite("--goal", goal)
+        return agent.skill_from_goal(torch.as_tensor(np.asarray(goal), dtype=torch.float32)), {
+            "goal": np.asarray(goal, dtype=float).tolist()}
+
+
+@register_zero_shot
+class SinglePolicy(ZeroShotProtocol):
+    """Methods without skills: their one pre-trained policy is the zero-shot policy."""
+
+    name = "single_policy"
+    config_cls = PolicyEvaluationConfig
+
+    def task_skill(self, agent, env, rng, episode_length, *, progress=None, keep_data=False):
+        return None, {"strategy": "single_policy"}
+
+
+def best_candidate(returns: list[float]) -> int:
+    """Index of the highest return (the first of equal ones)."""
+    if not returns:
+        raise ConfigError("skill selection completed no episode: --inference.steps must cover at least one "
+                          "whole episode of the task")
+    return int(np.argmax(np.asarray(returns, dtype=np.float64)))
+
+
+@register_zero_shot
+class SkillSelection(ZeroShotProtocol):
+    """Skill-discovery methods (paper App. C.3; docs/methods.md, "Protocols"): a new prior skill at
+    every episode start, mean actions, for ``steps`` reward-labelled steps; the skill of the best
+    episode return is the task's skill. The result records every candidate and the one chosen."""
+
+    name = "skill_selection"
+    config_cls = SkillSelectionConfig
+
+    def task_steps(self, source: str = "rewards") -> int:
+        return self.config.steps
+
+    def task_skill(self, agent, env, rng, episode_length, *, progress=None, keep_data=False):
+        # The run's own stream for the candidate skills, derived from its numpy generator.
+        generator = torch.Generator(device=agent.device).manual_seed(int(rng.integers(2**62)))
+        steps = self.config.steps
+        candidates: list[dict] = []
+        skills: list[torch.Tensor] = []
+        step = 0
+        while step < steps:
+            obs, _ = env.reset()
+            skill = agent.sample_skill(1, generator=generator)[0]
+            total, done = 0.0, False
+            while not done and step < steps:
+                obs, reward, terminated, truncated, _ = env.step(agent.act(obs, skill, explore=False))
+                total += float(reward)
+                step += 1
+                done = terminated or truncated
+                if progress is not None:
+                    progress.update(1)
+            # The authors' driver records an episode when the next one starts, so the episode that
+            # ends at the last step is never compared (docs/methods.md, "Protocols").
+            recorded = done and (self.config.candidates == "completed" or step < steps)
+            if recorded:
+                candidates.append({"skill": skill.cpu().tolist(), "return": total})
+                skills.append(skill)
+        chosen = best_candidate([c["return"] for c in candidates])
+        info = {"protocol": self.name, "candidates": candidates, "chosen": chosen,
+                "chosen_return": candidates[chosen]["return"], "selection_steps": steps}
+        return skills[chosen], info

@@ -1,0 +1,69 @@
+"""What a workflow checks before it starts: the device and threads, the memory a run needs, and
+that a task belongs to the run's domain."""
+
+from __future__ import annotations
+
+import torch
+
+from dvfb import envs
+from dvfb.errors import ConfigError
+from dvfb.training.monitor import notify
+from dvfb.workflows.config import PretrainConfig, resolve_device
+
+
+def setup_torch(config: PretrainConfig) -> torch.device:
+    if config.torch_threads > 0:
+        torch.set_num_threads(config.torch_threads)
+    return resolve_device(config.device)
+
+
+def available_memory_bytes() -> int | None:
+    """MemAvailable of /proc/meminfo (Linux), None elsewhere."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as file:
+            for line in file:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def format_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(n) < 1024 or unit == "PiB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return f"{n:.1f} PiB"
+
+
+def learner_state_bytes(agent: torch.nn.Module) -> int:
+    """About what the networks hold during training: parameters, gradients and Adam's two moments."""
+    return sum(p.numel() * p.element_size() * (4 if p.requires_grad else 1) for p in agent.parameters())
+
+
+def check_memory(parts: dict[str, int], what: str, device: torch.device) -> None:
+    """Print the memory estimate of a run and refuse one that cannot fit the machine (host memory;
+    on CUDA the replay and networks live on the GPU, whose free memory is checked instead)."""
+    total = sum(parts.values())
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        available, where = free, f"free on {device}"
+    else:
+        available, where = available_memory_bytes(), "available"
+    detail = " + ".join(f"{name} {format_bytes(n)}" for name, n in parts.items())
+    notify(f"[{what}] memory estimate: {detail} = {format_bytes(total)}"
+           + (f" ({format_bytes(available)} {where})" if available is not None else ""))
+    if available is not None and total > available:
+        raise ConfigError(f"{what} needs about {format_bytes(total)} ({detail}) but only {format_bytes(available)} "
+                          f"is {where}; lower --replay-capacity or the network sizes")
+
+
+def check_task_in_domain(task: str, domain: str) -> None:
+    """A zero-shot/fine-tuning task must share the pre-training domain's dynamics (docs/tasks.md §5)."""
+    if task not in envs.TASKS:
+        envs.make(task)  # raises ConfigError listing the valid names
+    task_domain = envs.TASKS[task].domain
+    if task_domain != domain:
+        raise ConfigError(f"task {task!r} belongs to domain {task_domain!r}, but the run was pre-trained "
+                          f"on {domain!r}; valid tasks: {', '.join(envs.tasks_of_domain(domain))}")

@@ -1,0 +1,120 @@
+"""Snapshots of pre-trained agents: writing them, and loading a run's agent with the checks that keep
+users from mixing runs (wrong agent, domain, configuration or shape; missing or corrupt files)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from dvfb.agents import Agent, make_agent
+from dvfb.config import to_dict
+from dvfb.errors import CheckpointError, ConfigError
+from dvfb.runs import RunDir, list_snapshots, load_snapshot
+from dvfb.workflows.config import PretrainConfig, agent_sections, load_run_config, resolve_device, run_config_from_dict
+
+SNAPSHOT_PREFIX = "snapshot_"
+# Format of agent snapshots. 1: written before the agent registry (DVFB/FB only, no "format"
+# key); 2: adds the format, the domain, and the agent's full run config for every method.
+SNAPSHOT_FORMAT = 2
+
+
+def snapshot_name(frames: int) -> str:
+    return f"{SNAPSHOT_PREFIX}{frames}"
+
+
+def snapshot_state(agent: Agent, config: PretrainConfig, frames: int) -> dict:
+    """A self-describing snapshot: the agent's name, its run config, the dims, the format version
+    and the state of its pre-trained modules."""
+    return {"kind": "pretrained_agent", "format": SNAPSHOT_FORMAT, "agent": agent.name, "domain": config.domain,
+            "config": to_dict(config), "frames": frames, "obs_dim": agent.obs_dim, "action_dim": agent.action_dim,
+            "modules": {k: m.state_dict() for k, m in agent.pretrained_modules().items()}}
+
+
+def available_snapshots(run: RunDir) -> list[int]:
+    """Frames of the run's agent snapshots, ascending."""
+    names = list_snapshots(run)
+    return sorted(int(n[len(SNAPSHOT_PREFIX):]) for n in names
+                  if n.startswith(SNAPSHOT_PREFIX) and n[len(SNAPSHOT_PREFIX):].isdigit())
+
+
+def open_pretrained_run(run_path: str | Path) -> tuple[RunDir, PretrainConfig]:
+    """Open a pre-training run and apply its ``torch_threads`` (acting is batch-1 forward passes,
+    which slow down badly when OpenMP threads compete for busy cores)."""
+    run = RunDir.open(run_path)
+    try:
+        config = load_run_config(run.config_path)
+    except ConfigError as exc:
+        if str(run.config_path) in str(exc):
+            raise
+        raise ConfigError(f"{run.config_path}: {exc}") from exc
+    if config.torch_threads > 0:
+        torch.set_num_threads(config.torch_threads)
+    return run, config
+
+
+def check_snapshot(state: dict, config: PretrainConfig, where: str) -> None:
+    """Refuse a snapshot of another method, domain, configuration or format, naming both sides."""
+    if state.get("kind") != "pretrained_agent":
+        raise CheckpointError(f"{where} is not a dvfb agent snapshot")
+    fmt = state.get("format", 1)
+    if not isinstance(fmt, int) or fmt > SNAPSHOT_FORMAT:
+        raise CheckpointError(f"{where} has snapshot format {fmt!r}, newer than this dvfb reads "
+                              f"({SNAPSHOT_FORMAT}); upgrade dvfb")
+    if state.get("agent") != config.agent:
+        raise CheckpointError(f"{where} was written by agent {state.get('agent')!r} but the run is configured for "
+                              f"agent {config.agent!r}")
+    stored = state.get("config")
+    if not isinstance(stored, dict):
+        raise CheckpointError(f"{where} has no run config")
+    domain = state.get("domain", stored.get("domain"))
+    if domain != config.domain:
+        raise CheckpointError(f"{where} was trained on domain {domain!r} but the run is configured for domain "
+                              f"{config.domain!r}")
+    try:
+        # Through the same strict reader, so that fields added since the snapshot take their defaults.
+        stored_sections = agent_sections(run_config_from_dict(stored, where))
+    except ConfigError as exc:
+        raise CheckpointError(f"{where}: {exc}") from exc
+    wanted = agent_sections(config)
+    diffs = [f"{section}.{key}: snapshot {stored_sections[section].get(key)!r}, run {value!r}"
+             for section, values in wanted.items() for key, value in values.items()
+             if stored_sections[section].get(key) != value]
+    if diffs:
+        raise CheckpointError(f"{where} was written with another configuration than the run's config.json ("
+                              + "; ".join(diffs[:4]) + (" ..." if len(diffs) > 4 else "") + ")")
+
+
+def load_pretrained_agent(run: RunDir, config: PretrainConfig, snapshot: int | None = None,
+                          device: str | torch.device | None = None) -> tuple[Agent, int]:
+    """Rebuild the run's agent from a snapshot (the newest by default), through the registry.
+
+    Raises :class:`CheckpointError` if the run has no snapshot, the snapshot is unreadable, or it
+    was written by another method, for another domain or shape, or with another configuration
+    than the run's ``config.json``.
+    """
+    frames = available_snapshots(run)
+    if not frames:
+        raise CheckpointError(f"run {run.path} has no pre-trained snapshot in {run.snapshots_dir}; "
+                              "has pre-training finished?")
+    if snapshot is None:
+        snapshot = frames[-1]
+    elif snapshot not in frames:
+        raise CheckpointError(f"run {run.path} has no snapshot at {snapshot} frames; available: {frames}")
+    state = load_snapshot(run, snapshot_name(snapshot), map_location="cpu")
+    where = f"snapshot {run.snapshots_dir / snapshot_name(snapshot)}.pt"
+    check_snapshot(state, config, where)
+    device = device if device is not None else resolve_device(config.device)
+    return agent_from_snapshot(state, config, device, where), snapshot
+
+
+def agent_from_snapshot(state: dict, config: PretrainConfig, device: str | torch.device, where: str) -> Agent:
+    """Build the snapshot's agent (registry) and load its pre-trained modules; a module of another
+    shape is an error that names both shapes."""
+    agent = make_agent(config.agent, state["obs_dim"], state["action_dim"], config, device)
+    try:
+        for key, module in agent.pretrained_modules().items():
+            module.load_state_dict(state["modules"][key])
+    except (KeyError, RuntimeError) as exc:
+        raise CheckpointError(f"{where} does not fit the configured networks: {exc}") from exc
+    return agent
