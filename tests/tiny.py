@@ -31,6 +31,9 @@ TINY_SECTIONS = {
     "icm_apt": dict(hidden_dim=H, rep_dim=16, knn_k=4),
     "proto": dict(pred_dim=16, proj_dim=32, num_protos=16, queue_size=64),
     "cic": dict(hidden_dim=H, knn_k=4),
+    "diayn": dict(hidden_dim=H),
+    "smm": dict(hidden_dim=H, vae_hidden_dim=16, code_dim=8),
+    "aps": dict(hidden_dim=H, knn_k=4),
 }
 
 

@@ -19,6 +19,9 @@ from dvfb.agents import rnd  # noqa: E402,F401
 from dvfb.agents import disagreement  # noqa: E402,F401
 from dvfb.agents import icm_apt  # noqa: E402,F401
 from dvfb.agents import proto  # noqa: E402,F401
+from dvfb.agents import diayn  # noqa: E402,F401
+from dvfb.agents import aps  # noqa: E402,F401
+from dvfb.agents import smm  # noqa: E402,F401
 from dvfb.agents import cic  # noqa: E402,F401
 
 from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig  # noqa: E402
