@@ -34,6 +34,8 @@ TINY_SECTIONS = {
     "diayn": dict(hidden_dim=H),
     "smm": dict(hidden_dim=H, vae_hidden_dim=16, code_dim=8),
     "aps": dict(hidden_dim=H, knn_k=4),
+    "becl": dict(hidden_dim=H),
+    "comsd": dict(hidden_dim=H, knn_k=4),
 }
 
 
