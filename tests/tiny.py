@@ -36,6 +36,7 @@ TINY_SECTIONS = {
     "aps": dict(hidden_dim=H, knn_k=4),
     "becl": dict(hidden_dim=H),
     "comsd": dict(hidden_dim=H, knn_k=4),
+    "cesd": dict(hidden_dim=H, critic_trunk_dim=16, critic_hidden_dim=32, knn_k=4),
 }
 
 
