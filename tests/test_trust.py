@@ -273,7 +273,7 @@ def test_singular_covariance_names_the_step_and_the_ridge_option():
     n = 32
     obs, next_obs = torch.randn(n, OBS, generator=g), torch.randn(n, OBS, generator=g)
     batch = Batch(obs, torch.zeros(n, ACT), torch.zeros(n, 1), torch.full((n, 1), 0.99), next_obs, next_obs, None)
-    window = MetricWindow()
+    window = MetricWindow(agent.nonfinite_hint)  # as the training loops build it
     window.add(4321, agent.update(batch))
     with pytest.raises(NonFiniteLossError, match=r"at step 4321.*Cov\(B\) is singular.*--fb.cov-ridge"):
         window.flush()

@@ -41,7 +41,9 @@ from dvfb.runs import (
     save_checkpoint,
     write_json_atomic,
 )
-from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, check_action, notify
+from dvfb.training import loop
+from dvfb.training.loop import EpisodeState, OnlineCollector
+from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, notify
 from dvfb.training.seeding import restore_rng_state, rng_state, seed_everything
 from dvfb.workflows.resources import check_task_in_domain
 from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
@@ -163,7 +165,7 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
     # The fine-tuner's own random stream for rollout skills it redraws (--finetune.skill resample).
     skill_generator = torch.Generator(device=agent.device).manual_seed(run_config.seed)
     started = time.time()
-    episode_start, obs, skill = True, None, None
+    episode = EpisodeState()
 
     if state is not None:
         try:
@@ -179,10 +181,10 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
             step, curve, inference_info = state["step"], state["curve"], state["inference_info"]
             if state.get("episode_state") is not None:  # written mid-episode on a signal
                 env.unwrapped.set_episode_state(state["episode_state"]["env"])
-                obs = np.asarray(state["episode_state"]["obs"], dtype=np.float32)
+                episode.obs = np.asarray(state["episode_state"]["obs"], dtype=np.float32)
                 skill = state["episode_state"].get("skill", z)
-                skill = None if skill is None else skill.to(agent.device)
-                episode_start = False
+                episode.set_skill(None if skill is None else skill.to(agent.device))
+                episode.episode_start = False
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
             raise CheckpointError(f"cannot resume {path}: the checkpoint does not fit this run ({exc})") from exc
         ft_run.save_config(run_config)  # only now may the config change (a larger --finetune.frames)
@@ -204,60 +206,41 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
     _write_curve(ft_run, run_config, curve, inference_info, z)
 
     window = MetricWindow(agent.nonfinite_hint)
-    skill_host = None if skill is None else skill.cpu().numpy()
     needs = finetuner.replay_needs()
-    action_dim = agent.action_dim
     bar = Progress(cfg.frames, step, f"finetune {task}", progress)
+    collector = OnlineCollector(
+        env, replay, agent, rng, lambda t, starting, current: finetuner.rollout_skill(t, starting, current, skill_generator),
+        lambda t: finetuner.uniform_seed_actions and t < cfg.seed_frames, state=episode)
 
     def save_resume(mid_episode: bool = False) -> None:
         checkpoint = {
             "kind": RESUME_KIND, "step": step, "z": None if z is None else z.cpu(), "curve": curve,
             "inference_info": inference_info, "finetuner": finetuner.training_state(),
-            "replay": replay.state_dict(), "rng": rng_state(rng),
+            "replay": replay.state_dict(), "rng": rng_state(rng), "skill_generator": skill_generator.get_state(),
             "env_rng": env.unwrapped.get_rng_state(), "eval_env_rng": eval_env.unwrapped.get_rng_state()}
-        checkpoint["skill_generator"] = skill_generator.get_state()
         if mid_episode:
-            checkpoint["episode_state"] = {"env": env.unwrapped.get_episode_state(), "obs": torch.as_tensor(obs),
-                                           "skill": None if skill is None else skill.cpu()}
+            checkpoint["episode_state"] = {"env": env.unwrapped.get_episode_state(), "obs": torch.as_tensor(episode.obs),
+                                           "skill": None if episode.skill is None else episode.skill.cpu()}
         save_checkpoint(ft_run, checkpoint, f"resume_{step}")
+
+    def after_step(t: int) -> None:
+        nonlocal step
+        step = t  # what a checkpoint written at this step records
+        if t % 1000 == 0 or t == cfg.frames:
+            means = window.flush()
+            if means:
+                logger.log(t, means, prefix="train")
+        if t % cfg.eval_every == 0 or t == cfg.frames:
+            curve.append(_curve_point(t, evaluate_policy(agent, eval_env, finetuner.skill, cfg.eval_episodes)))
+            logger.log(t, _eval_metrics(curve[-1]), prefix="eval")
+            _write_curve(ft_run, run_config, curve, inference_info, z)
 
     checkpoints = ResumeCheckpoints(save_resume, window, cfg.checkpoint_every, cfg.frames, "fine-tuning",
                                     ft_run.path, last=step if state is not None else None)
     try:
         with checkpoints:
-            while step < cfg.frames:
-                starting = episode_start
-                if episode_start:
-                    obs, _ = env.reset()
-                    replay.start_episode(obs)
-                    episode_start = False
-                drawn = finetuner.rollout_skill(step, starting, skill, skill_generator)
-                if drawn is not skill:  # copied to the host once per new skill, not every step
-                    skill = drawn
-                    skill_host = None if skill is None else skill.cpu().numpy()
-                if finetuner.uniform_seed_actions and step < cfg.seed_frames:
-                    action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
-                else:
-                    action = agent.act(obs, skill, explore=True)
-                if step >= cfg.seed_frames and step % cfg.update_every == 0:
-                    window.add(step, finetuner.update(needs.sample(replay)))
-                check_action(action, step, window)
-                obs, reward, terminated, truncated, _ = env.step(action)
-                replay.add(action, reward, 0.0 if terminated else 1.0, obs, skill_host)
-                step += 1
-                bar.update(1)
-                if step % 1000 == 0 or step == cfg.frames:
-                    means = window.flush()
-                    if means:
-                        logger.log(step, means, prefix="train")
-                if step % cfg.eval_every == 0 or step == cfg.frames:
-                    curve.append(_curve_point(step, evaluate_policy(agent, eval_env, finetuner.skill, cfg.eval_episodes)))
-                    logger.log(step, _eval_metrics(curve[-1]), prefix="eval")
-                    _write_curve(ft_run, run_config, curve, inference_info, z)
-                if terminated or truncated:
-                    episode_start = True
-                    checkpoints.episode_end(step)
-                checkpoints.after_step(step, mid_episode=not episode_start)
+            step = loop.run(step, cfg.frames, collector, lambda: finetuner.update(needs.sample(replay)),
+                            cfg.seed_frames, cfg.update_every, window, checkpoints, bar, after_step)
     finally:
         bar.close()
         logger.close()

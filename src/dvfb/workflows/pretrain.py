@@ -1,6 +1,6 @@
 """Reward-free online pre-training (docs/methods.md §7.1) with snapshots and exact resume.
 
-The loop, per environment step ``t``:
+The loop (:mod:`dvfb.training.loop`, shared with fine-tuning), per environment step ``t``:
 
 * at an episode start: reset, store the reset observation;
 * draw a new rollout skill from the method's prior when its declared rule says so
@@ -12,7 +12,8 @@ The loop, per environment step ``t``:
 * step the environment, store ``(a, task reward, discount, s', skill)``. The task reward is stored
   for logging only: the reward-free update never reads it (docs/tasks.md §3).
 
-The loop talks to the method only through the :class:`~dvfb.agents.base.Agent` interface.
+The loop talks to the method only through the :class:`~dvfb.agents.base.Agent` interface; this
+module adds the method's skill rule, the logging, the snapshots and what a checkpoint holds.
 
 Resume checkpoints are written at episode ends, so a resumed run starts a fresh episode exactly
 where the uninterrupted run would have, with the same RNG streams, replay content, optimiser
@@ -46,7 +47,9 @@ from dvfb.runs import (
     save_snapshot,
     write_json_atomic,
 )
-from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, check_action, notify
+from dvfb.training import loop
+from dvfb.training.loop import EpisodeState, OnlineCollector
+from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, notify
 from dvfb.training.seeding import restore_rng_state, rng_state, seed_everything
 from dvfb.workflows.resources import check_memory, learner_state_bytes, setup_torch
 from dvfb.workflows.snapshots import snapshot_name, snapshot_state
@@ -139,10 +142,8 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
                           max_episode_length=episode_length, device=device)
     needs = agent.replay_needs()
 
-    step, episode = 0, 0
-    first_reset = True
-    obs = skill = skill_host = None
-    episode_return, episode_start = 0.0, True
+    step = 0
+    episode = EpisodeState()
     if state is not None:
         try:
             agent.load_training_state(state["agent_state"])
@@ -152,15 +153,13 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
             episode_state = state.get("episode_state")
             if episode_state is not None:  # a checkpoint written mid-episode (on a signal)
                 env.unwrapped.set_episode_state(episode_state["env"])
-                obs = np.asarray(episode_state["obs"], dtype=np.float32)
+                episode.obs = np.asarray(episode_state["obs"], dtype=np.float32)
                 skill = episode_state["skill"]
-                skill = None if skill is None else skill.to(device)
-                skill_host = None if skill is None else skill.cpu().numpy()
-                episode_return, episode_start = float(episode_state["episode_return"]), False
+                episode.set_skill(None if skill is None else skill.to(device))
+                episode.episode_return, episode.episode_start = float(episode_state["episode_return"]), False
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
             raise CheckpointError(f"cannot resume {run.path}: the checkpoint does not fit this run ({exc})") from exc
-        step, episode = state["step"], state["episode"]
-        first_reset = False
+        step, episode.episode = state["step"], state["episode"]
         # Only now, with the checkpoint loaded, may the run's config change (a larger --frames).
         run.save_config(config)
         notify(f"[pretrain] resuming {run.path} from step {step} (of {config.frames})")
@@ -173,71 +172,54 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
     started = time.time()
     start_step = step
 
-    def draw_skill() -> None:
-        nonlocal skill, skill_host
-        drawn = agent.sample_skill(1)
-        skill = None if drawn is None else drawn[0]
-        skill_host = None if skill is None else skill.cpu().numpy()  # what the replay stores; once per draw
+    def next_skill(t: int, episode_start: bool, current):
+        # The method's declared rule (docs/methods.md, "Skills"); its prior draws the new skill.
+        return agent.sample_skill(1)[0] if agent.skill.due(t, episode_start) else current
+
+    collector = OnlineCollector(env, replay, agent, rng, next_skill, lambda t: t < config.seed_frames,
+                                reward_key="task_reward", first_reset_seed=None if state is not None else config.seed,
+                                state=episode)
 
     def save_resume(mid_episode: bool = False) -> None:
         checkpoint = {
             "kind": RESUME_KIND, "agent": config.agent, "config": to_dict(config), "step": step,
-            "episode": episode, "agent_state": agent.training_state(), "replay": replay.state_dict(),
+            "episode": episode.episode, "agent_state": agent.training_state(), "replay": replay.state_dict(),
             "rng": rng_state(rng), "env_rng": env.unwrapped.get_rng_state()}
         if mid_episode:
             checkpoint["episode_state"] = {
-                "env": env.unwrapped.get_episode_state(), "obs": torch.as_tensor(obs),
-                "skill": None if skill is None else skill.cpu(), "episode_return": episode_return}
+                "env": env.unwrapped.get_episode_state(), "obs": torch.as_tensor(episode.obs),
+                "skill": None if episode.skill is None else episode.skill.cpu(),
+                "episode_return": episode.episode_return}
         save_checkpoint(run, checkpoint, f"resume_{step}")
+
+    def after_step(t: int) -> None:
+        nonlocal step
+        step = t  # what a checkpoint written at this step records
+        if t % config.log_every == 0 or t == config.frames:
+            means = window.flush()
+            if means:
+                means["fps"] = (t - start_step) / max(time.time() - started, 1e-9)
+                logger.log(t, means, prefix="train")
+        if t in snapshots:
+            window.flush()
+            save_snapshot(run, snapshot_state(agent, config, t), snapshot_name(t))
+
+    def after_episode(t: int, ended: EpisodeState) -> None:
+        logger.log(t, {"episode": ended.episode, "episode_task_reward": ended.episode_return}, prefix="episode")
 
     checkpoints = ResumeCheckpoints(save_resume, window, config.checkpoint_every, config.frames, "pre-training",
                                     run.path, last=step if state is not None else None)
     try:
         with checkpoints:
-            while step < config.frames:
-                starting = episode_start
-                if episode_start:
-                    obs, _ = env.reset(seed=config.seed) if first_reset else env.reset()
-                    first_reset = False
-                    replay.start_episode(obs)
-                    episode_return, episode_start = 0.0, False
-                if agent.skill.due(step, starting):
-                    draw_skill()
-                if step < config.seed_frames:
-                    action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
-                else:
-                    action = agent.act(obs, skill, explore=True)
-                if step >= config.seed_frames and step % config.update_every == 0:
-                    window.add(step, agent.update(needs.sample(replay)))
-                check_action(action, step, window)
-                obs, _, terminated, truncated, info = env.step(action)
-                task_reward = info["task_reward"]
-                replay.add(action, task_reward, 0.0 if terminated else 1.0, obs, skill_host)
-                episode_return += task_reward
-                step += 1
-                bar.update(1)
-
-                if step % config.log_every == 0 or step == config.frames:
-                    means = window.flush()
-                    if means:
-                        elapsed = time.time() - started
-                        means["fps"] = (step - start_step) / max(elapsed, 1e-9)
-                        logger.log(step, means, prefix="train")
-                if step in snapshots:
-                    window.flush()
-                    save_snapshot(run, snapshot_state(agent, config, step), snapshot_name(step))
-                if terminated or truncated:
-                    episode += 1
-                    episode_start = True
-                    logger.log(step, {"episode": episode, "episode_task_reward": episode_return}, prefix="episode")
-                    checkpoints.episode_end(step)
-                checkpoints.after_step(step, mid_episode=not episode_start)
+            step = loop.run(step, config.frames, collector, lambda: agent.update(needs.sample(replay)),
+                            config.seed_frames, config.update_every, window, checkpoints, bar, after_step,
+                            after_episode)
     finally:
         bar.close()
         logger.close()
     elapsed = time.time() - started
     write_json_atomic(run.path / "pretrain_summary.json", {
-        "agent": config.agent, "domain": config.domain, "frames": step, "episodes": episode,
+        "agent": config.agent, "domain": config.domain, "frames": step, "episodes": episode.episode,
         "wall_clock_s": elapsed, "frames_per_s": (step - start_step) / max(elapsed, 1e-9),
         "resumed_from": start_step if resume else None, "device": str(device)})
     return run

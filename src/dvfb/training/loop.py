@@ -1,0 +1,127 @@
+"""The one training loop of pre-training and fine-tuning, over a data source (docs/methods.md,
+"Training loop").
+
+Per step ``t``, whatever the method:
+
+1. the data source prepares the step: the online collector starts an episode when one ended
+   (reset, the reset observation into the replay), redraws the rollout skill when the skill rule
+   says so, and picks the action (uniform during the uniform phase, else a rollout sample of
+   ``pi(s, skill)``);
+2. if ``t >= learn_from`` and ``t % update_every == 0``: one update on a batch drawn as the
+   learner's :class:`~dvfb.agents.base.ReplayNeeds` say (before stepping, as the authors' code does);
+3. the source steps: the environment takes the action and the transition (with its skill) is
+   stored;
+4. ``after_step(t + 1)`` (logging, snapshots, evaluations), ``after_episode`` at an episode end, then
+   the resume checkpoints at episode ends and on signals (:class:`~dvfb.training.monitor.ResumeCheckpoints`).
+
+The loop knows no method: it asks its source for transitions, the learner for updates and its hooks
+for the rest. A fixed dataset is another source (it steps nothing and only feeds the replay).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, check_action
+
+
+@dataclass
+class EpisodeState:
+    """Where the collector stands: what a mid-episode checkpoint keeps."""
+
+    obs: np.ndarray | None = None
+    skill: torch.Tensor | None = None
+    skill_host: np.ndarray | None = None  # what the replay stores; copied once per new skill
+    episode_return: float = 0.0
+    episode_start: bool = True
+    episode: int = 0
+
+    def set_skill(self, skill: torch.Tensor | None) -> None:
+        if skill is not self.skill:
+            self.skill = skill
+            self.skill_host = None if skill is None else skill.cpu().numpy()
+
+
+# ``next_skill(step, episode_start, current) -> skill``: the rollout skill of a step.
+SkillRule = Callable[[int, bool, "torch.Tensor | None"], "torch.Tensor | None"]
+
+
+class OnlineCollector:
+    """The online data source: acts in an environment and stores every transition in the replay.
+
+    ``uniform(step)`` says whether a step acts uniformly at random (from ``rng``); ``reward_key``
+    names the ``info`` field whose reward is stored (pre-training stores the task reward for
+    logging, the reward-free update never reads it), None the environment's reward.
+    ``first_reset_seed`` seeds the first reset of a fresh run.
+    """
+
+    def __init__(self, env, replay, agent, rng: np.random.Generator, next_skill: SkillRule,
+                 uniform: Callable[[int], bool], *, reward_key: str | None = None,
+                 first_reset_seed: int | None = None, state: EpisodeState | None = None):
+        self.env, self.replay, self.agent, self.rng = env, replay, agent, rng
+        self.next_skill, self.uniform, self.reward_key = next_skill, uniform, reward_key
+        self.first_reset_seed = first_reset_seed
+        self.state = state if state is not None else EpisodeState()
+        self.action_dim = env.action_space.shape[0]
+        self.action: np.ndarray | None = None
+
+    def prepare(self, step: int) -> None:
+        s = self.state
+        starting = s.episode_start
+        if starting:
+            if self.first_reset_seed is not None:
+                s.obs, _ = self.env.reset(seed=self.first_reset_seed)
+                self.first_reset_seed = None
+            else:
+                s.obs, _ = self.env.reset()
+            self.replay.start_episode(s.obs)
+            s.episode_return, s.episode_start = 0.0, False
+        s.set_skill(self.next_skill(step, starting, s.skill))
+        if self.uniform(step):
+            self.action = self.rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
+        else:
+            self.action = self.agent.act(s.obs, s.skill, explore=True)
+
+    def advance(self) -> bool:
+        """Step the environment with the prepared action; True at an episode end."""
+        s = self.state
+        s.obs, reward, terminated, truncated, info = self.env.step(self.action)
+        if self.reward_key is not None:
+            reward = info[self.reward_key]
+        self.replay.add(self.action, reward, 0.0 if terminated else 1.0, s.obs, s.skill_host)
+        s.episode_return += reward
+        if terminated or truncated:
+            s.episode += 1
+            s.episode_start = True
+            return True
+        return False
+
+
+def run(step: int, total: int, source: OnlineCollector, update: Callable[[], dict], learn_from: int,
+        update_every: int, window: MetricWindow, checkpoints: ResumeCheckpoints, progress: Progress,
+        after_step: Callable[[int], None], after_episode: Callable[[int, EpisodeState], None] | None = None) -> int:
+    """Run the loop of the module docstring from ``step`` to ``total``; returns the last step.
+
+    ``update()`` samples a batch and makes one update, returning its metric tensors. Use inside
+    ``with checkpoints:`` (signals and failures are reported there).
+    """
+    while step < total:
+        source.prepare(step)
+        if step >= learn_from and step % update_every == 0:
+            window.add(step, update())
+        if source.action is not None:
+            check_action(source.action, step, window)
+        done = source.advance()
+        step += 1
+        progress.update(1)
+        after_step(step)
+        if done:
+            if after_episode is not None:
+                after_episode(step, source.state)
+            checkpoints.episode_end(step)
+        checkpoints.after_step(step, mid_episode=not source.state.episode_start)
+    return step
