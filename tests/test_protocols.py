@@ -116,3 +116,57 @@ def test_skill_selection_needs_a_whole_episode():
     protocol = SkillSelection(SkillSelectionConfig(steps=500, eval_episodes=1))
     with pytest.raises(ConfigError, match="whole episode"):
         protocol.task_skill(_skill_agent(), envs.make(MAZE, seed=0), np.random.default_rng(0), 1000)
+
+
+def test_urlb_fine_tuning_skill_modes():
+    from dvfb.agents.base import ReplayNeeds
+    from dvfb.protocols.urlb import DDPGFinetuneConfig, DDPGFinetuner
+    def finetuner(agent_name, **options):
+        torch.manual_seed(0)
+        config = tiny_run_config(agent_name)
+        agent = make_agent(agent_name, 4, 2, config, "cpu")
+        return agent, DDPGFinetuner(agent, agent.sample_skill(1)[0], DDPGFinetuneConfig(**options))
+
+    agent, selected = finetuner("diayn")
+    chosen = selected.skill.clone()
+    assert all(torch.equal(selected.rollout_skill(t, t == 0, chosen), chosen) for t in range(0, 200, 7))
+    agent, resample = finetuner("diayn", skill="resample")
+    g = torch.Generator().manual_seed(0)
+    drawn = resample.rollout_skill(0, True, None, g)
+    assert torch.equal(resample.rollout_skill(1, False, drawn, g), drawn)  # not due: kept
+    assert torch.equal(resample.rollout_skill(50, False, drawn, torch.Generator().manual_seed(9)),
+                       agent.sample_skill(1, generator=torch.Generator().manual_seed(9))[0])  # due every 50
+    _agent, box = finetuner("cic", skill="prior_mean")
+    assert torch.equal(box.skill, torch.full((64,), 0.5))
+    with pytest.raises(ConfigError, match="box prior"):
+        finetuner("diayn", skill="prior_mean")
+    with pytest.raises(ConfigError, match="no task regression"):
+        finetuner("diayn", skill="regressed")
+
+    agent, regressed = finetuner("aps", skill="regressed", regress_after=100, regress_samples=64)
+    from dvfb.replay import ReplayBuffer
+
+    rng = np.random.default_rng(0)
+    replay = ReplayBuffer(1000, 4, 2, agent.skill_dim)  # dense random rewards: a direction to find
+    replay.start_episode(rng.normal(size=4).astype(np.float32))
+    for _ in range(300):
+        replay.add(rng.uniform(-1, 1, 2).astype(np.float32), float(rng.uniform()), 1.0,
+                   rng.normal(size=4).astype(np.float32), agent.sample_skill(1)[0].numpy())
+    regressed.bind_replay(replay)
+    before = regressed.skill.clone()
+    assert torch.equal(regressed.rollout_skill(50, False, before), before)  # before regress_after
+    torch.manual_seed(3)
+    skill = regressed.rollout_skill(100, False, before)
+    torch.manual_seed(3)
+    batch = ReplayNeeds(64, 0.99, nstep=3).sample(replay)
+    expected = agent.intrinsic.regress_task(batch.obs, batch.reward)
+    torch.testing.assert_close(skill, expected / expected.norm())
+    zero = ReplayBuffer(1000, 4, 2, agent.skill_dim)  # all-zero rewards: no direction, the skill stays
+    zero.start_episode(np.zeros(4, np.float32))
+    for _ in range(10):
+        zero.add(np.zeros(2, np.float32), 0.0, 1.0, np.ones(4, np.float32), agent.sample_skill(1)[0].numpy())
+    regressed.bind_replay(zero)
+    assert torch.equal(regressed.rollout_skill(105, False, skill), skill)
+    regressed.bind_replay(replay)
+    regressed.skill = skill
+    assert torch.equal(regressed.skill, skill) and abs(float(skill.norm()) - 1) < 1e-5  # evaluations use it

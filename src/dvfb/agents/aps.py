@@ -40,6 +40,10 @@ class APSAgent(IntrinsicDDPGAgent):
     def build_reward(self) -> APSReward:
         return APSReward(self.obs_dim, self.skill.dim, self.reward_config)
 
+    def regress_skill(self, obs: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return self.intrinsic.regress_task(obs, reward, self.net_runner)
+
 
 register(AgentSpec(
     name="aps", agent_cls=APSAgent, family="skill_discovery",

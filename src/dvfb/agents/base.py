@@ -138,6 +138,11 @@ class Agent(nn.Module):
         """The skill that reaches a goal observation."""
         raise ConfigError(f"agent {self.name!r} does not infer a skill from a goal state")
 
+    def regress_skill(self, obs: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
+        """The skill that best explains rewards of states by the method's own features (APS's
+        fine-tuning task regression)."""
+        raise ConfigError(f"agent {self.name!r} has no task regression (--finetune.skill regressed)")
+
     def goal_widths(self) -> tuple[int, ...]:
         """The sizes a goal given to :meth:`skill_from_goal` may have (first: an observation)."""
         return (self.obs_dim,)

@@ -116,6 +116,9 @@ class Finetuner(nn.Module):
         """The skill to act with at ``step``; ``current`` is the one of the previous step."""
         return self.skill
 
+    def bind_replay(self, replay) -> None:
+        """The fine-tuning replay, for fine-tuners whose rollout skill is computed from it."""
+
     def replay_needs(self):
         return self.agent.replay_needs()
 

@@ -13,7 +13,10 @@ The rollout skill of a method with skills (docs/methods.md, "Fine-tuning the URL
 * ``resample`` (the DVFB authors' driver for DIAYN, APS, SMM and CeSD) -- redrawn from the prior by
   the method's pre-training rule;
 * ``random_fixed`` (BeCL's and the official CeSD driver) -- one prior draw, fixed for the run;
-* ``prior_mean`` (CIC's fine-tuning skill, 0.5 in every coordinate) -- the mean of a box prior.
+* ``prior_mean`` (CIC's fine-tuning skill, 0.5 in every coordinate) -- the mean of a box prior;
+* ``regressed`` (URLB's APS) -- after ``regress_after`` steps and then whenever the skill rule's
+  period comes round, the method's task regression on ``regress_samples`` tuples of the fine-tuning
+  replay (their ``s_t`` and n-step rewards) gives the skill; the selected one before.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner
 from dvfb.replay import Batch
 
 CRITIC_INITS = ("trunk", "all", "none")
-FINETUNE_SKILLS = ("selected", "resample", "random_fixed", "prior_mean")
+FINETUNE_SKILLS = ("selected", "resample", "random_fixed", "prior_mean", "regressed")
 
 
 @dataclass
@@ -40,9 +43,13 @@ class DDPGFinetuneConfig(FinetuneSchedule):
     init_critic: str = param("trunk", "What the fresh critic copies from pre-training: its trunk (URLB), all of "
                              "it (Proto), or nothing.", CRITIC_INITS)
     skill: str = param("selected", "Methods with skills: the selected skill, fixed (paper); resampled by the "
-                       "pre-training rule; one random prior draw, fixed; or the mean of a box prior (CIC's "
-                       "0.5). The inference steps that select a skill are not counted in --finetune.frames.",
+                       "pre-training rule; one random prior draw, fixed; the mean of a box prior (CIC's "
+                       "0.5); or regressed from the replay's rewards (URLB's APS). The inference steps that select a skill are not counted in --finetune.frames.",
                        FINETUNE_SKILLS)
+    regress_after: int = param(4096, "--finetune.skill regressed: steps before the first task regression "
+                               "(URLB's num_init_steps).", at_least=1)
+    regress_samples: int = param(4096, "--finetune.skill regressed: replay tuples per regression (URLB's "
+                                 "lstsq_batch_size).", at_least=1)
 
 
 @register_finetuner
@@ -72,12 +79,28 @@ class DDPGFinetuner(Finetuner):
             self.skill = torch.full((spec.dim,), (spec.low + spec.high) / 2, device=agent.device)
         elif spec.has_skill and config.skill == "random_fixed":
             self.skill = agent.sample_skill(1)[0]
+        elif spec.has_skill and config.skill == "regressed":
+            agent.regress_skill(torch.zeros(1, agent.obs_dim, device=agent.device),
+                                torch.ones(1, 1, device=agent.device))  # one line now if it has none
+        self.replay = None
+
+    def bind_replay(self, replay) -> None:
+        self.replay = replay
 
     def rollout_skill(self, step, episode_start, current, generator=None):
-        if self.config.skill == "resample" and self.agent.skill.has_skill:
-            if current is None or self.agent.skill.due(step, episode_start):
+        spec, c = self.agent.skill, self.config
+        if c.skill == "resample" and spec.has_skill:
+            if current is None or spec.due(step, episode_start):
                 return self.agent.sample_skill(1, generator=generator)[0]
             return current
+        if c.skill == "regressed" and spec.has_skill and step >= c.regress_after and spec.due(step, episode_start):
+            ddpg = self.agent.ddpg
+            batch = ReplayNeeds(c.regress_samples, ddpg.discount, nstep=ddpg.nstep).sample(self.replay)
+            task = self.agent.regress_skill(batch.obs, batch.reward)
+            # Rewards with no direction (all zero so far, as sparse tasks start) keep the skill;
+            # torch.where, not an if: no host sync.
+            norm = task.norm()
+            self.skill = torch.where(norm > 1e-6, task / norm.clamp_min(1e-12), self.skill)  # evaluations use it
         return self.skill
 
     def replay_needs(self) -> ReplayNeeds:

@@ -207,6 +207,7 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
 
     window = MetricWindow(agent.nonfinite_hint)
     needs = finetuner.replay_needs()
+    finetuner.bind_replay(replay)
     bar = Progress(cfg.frames, step, f"finetune {task}", progress)
     collector = OnlineCollector(
         env, replay, agent, rng, lambda t, starting, current: finetuner.rollout_skill(t, starting, current, skill_generator),
