@@ -170,3 +170,46 @@ def test_urlb_fine_tuning_skill_modes():
     regressed.bind_replay(replay)
     regressed.skill = skill
     assert torch.equal(regressed.skill, skill) and abs(float(skill.norm()) - 1) < 1e-5  # evaluations use it
+
+
+@pytest.mark.parametrize("agent_name", ["dvfb", "cesd", "smm"])
+def test_an_agent_with_a_run_generator_draws_nothing_from_the_global_stream(agent_name):
+    """Skills, policy noise, the update's noise and the reward modules' samples all come from the
+    run's generator: with the same generator state, changing torch's global stream changes nothing."""
+    from dvfb.agents.base import ReplayNeeds  # noqa: F401
+    from test_agents import filled_replay
+
+    results = []
+    for global_seed in (1, 2):
+        torch.manual_seed(0)
+        agent = make_agent(agent_name, 4, 2, tiny_run_config(agent_name), "cpu")
+        replay = filled_replay(agent)
+        generator = torch.Generator().manual_seed(5)
+        agent.use_generator(generator)
+        torch.manual_seed(global_seed)
+        obs = np.zeros(4, np.float32)
+        skill = agent.sample_skill(1)[0]
+        action = agent.act(obs, skill, explore=True)
+        agent.update(agent.replay_needs().sample(replay, generator))
+        results.append((skill, action, [p.detach().clone() for p in agent.parameters()]))
+    (s1, a1, p1), (s2, a2, p2) = results
+    assert torch.equal(s1, s2) and np.array_equal(a1, a2)
+    assert all(torch.equal(x, y) for x, y in zip(p1, p2))
+
+
+def test_a_resume_checkpoint_of_the_old_format_is_refused_in_one_line(tmp_path):
+    from dvfb.errors import CheckpointError
+    from dvfb.runs import RunDir, latest_checkpoint
+    from dvfb.workflows.pretrain import pretrain
+
+    config = tiny_run_config("rnd", frames=1000)
+    pretrain(config, tmp_path / "run", progress=False)
+    run = RunDir(tmp_path / "run")
+    path = latest_checkpoint(run)
+    state = torch.load(path, weights_only=False)
+    state.pop("format"), state.pop("generator")  # as written before runs owned their streams
+    torch.save(state, path)
+    import dataclasses
+
+    with pytest.raises(CheckpointError, match="format 1.*format 2"):
+        pretrain(dataclasses.replace(config, frames=2000), tmp_path / "run", resume=True, progress=False)

@@ -221,18 +221,27 @@ def sample_z_prior(n: int, z_dim: int, device: torch.device | str = "cpu",
 # Policy distribution (§3.3)
 
 
-def rollout_action(mean: torch.Tensor, std: float) -> torch.Tensor:
+def standard_normal(like: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    """N(0, 1) noise shaped like ``like``, from ``generator`` (None: torch's global stream, with the
+    same values ``randn_like`` gives)."""
+    if generator is None:
+        return torch.randn_like(like)
+    return torch.randn(like.shape, generator=generator, device=like.device, dtype=like.dtype)
+
+
+def rollout_action(mean: torch.Tensor, std: float, generator: torch.Generator | None = None) -> torch.Tensor:
     """Data-collection sample: ``clamp(mu + sigma*eps)`` with unclipped noise."""
-    noise = torch.randn_like(mean) * std
+    noise = standard_normal(mean, generator) * std
     return (mean + noise).clamp(-1 + ACTION_EPS, 1 - ACTION_EPS)
 
 
-def training_action(mean: torch.Tensor, std: float, noise_clip: float) -> torch.Tensor:
+def training_action(mean: torch.Tensor, std: float, noise_clip: float,
+                    generator: torch.Generator | None = None) -> torch.Tensor:
     """Reparameterised training sample with noise clipped at ``noise_clip``.
 
     The outer clamp is straight-through: the value is clamped, the gradient w.r.t. ``mean`` is 1.
     """
-    noise = (torch.randn_like(mean) * std).clamp(-noise_clip, noise_clip)
+    noise = (standard_normal(mean, generator) * std).clamp(-noise_clip, noise_clip)
     raw = mean + noise
     clamped = raw.clamp(-1 + ACTION_EPS, 1 - ACTION_EPS)
     return raw + (clamped - raw).detach()

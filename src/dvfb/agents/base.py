@@ -60,6 +60,8 @@ class Agent(nn.Module):
 
     name: ClassVar[str] = ""
     skill: SkillSpec = NO_SKILL
+    # The run's random stream (Agent.use_generator); None: torch's global one.
+    generator: torch.Generator | None = None
     obs_dim: int
     action_dim: int
     device: torch.device
@@ -79,10 +81,17 @@ class Agent(nn.Module):
     def sample_skill(self, n: int = 1, generator: torch.Generator | None = None) -> torch.Tensor | None:
         """``n`` draws of the method's skill prior, ``(n, skill_dim)``; None without skills.
 
-        ``generator``: the caller's random stream (None: torch's global one). Methods whose skill
-        kind is ``method`` override this.
+        ``generator``: the caller's random stream (None: the agent's, see :meth:`use_generator`).
+        Methods whose skill kind is ``method`` override this.
         """
-        return self.skill.sample(n, self.device, generator)
+        return self.skill.sample(n, self.device, generator if generator is not None else self.generator)
+
+    def use_generator(self, generator: torch.Generator | None) -> None:
+        """Draw every random number of this agent (skills, policy noise, the modules' samples) from
+        ``generator``, the run's own stream, instead of torch's global one."""
+        for module in self.modules():
+            if hasattr(module, "generator"):
+                module.generator = generator
 
     # Learning ----------------------------------------------------------------------------------
     def replay_needs(self) -> ReplayNeeds:
@@ -115,7 +124,7 @@ class Agent(nn.Module):
         action = host(obs, skill_np)
         if explore:
             # rollout_action's math: clamp(mu + sigma * eps), eps ~ N(0, 1) from torch's stream.
-            action += torch.randn(1, self.action_dim).numpy()[0] * np.float32(self.policy_stddev)
+            action += torch.randn(1, self.action_dim, generator=self.generator).numpy()[0] * np.float32(self.policy_stddev)
             np.minimum(action, np.float32(1 - ACTION_EPS), out=action)
             np.maximum(action, np.float32(-1 + ACTION_EPS), out=action)
         return action
@@ -125,7 +134,7 @@ class Agent(nn.Module):
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
         skill_t = skill.reshape(1, -1) if skill is not None else obs_t.new_zeros(1, 0)
         mean = self.actor(obs_t, skill_t)
-        action = rollout_action(mean, self.policy_stddev) if explore else mean
+        action = rollout_action(mean, self.policy_stddev, self.generator) if explore else mean
         return action[0].cpu().numpy()
 
     # Zero-shot (families that infer a skill from data) ----------------------------------------

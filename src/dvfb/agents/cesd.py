@@ -105,7 +105,8 @@ class CeSDCore(DDPGCore):
         belongs to cluster k); None: every member regresses every state (fine-tuning)."""
         c = self.config
         with torch.no_grad():
-            next_action = training_action(run(self.actor, batch.next_obs, skill), c.stddev, c.stddev_clip)
+            next_action = training_action(run(self.actor, batch.next_obs, skill), c.stddev, c.stddev_clip,
+                                          self.generator)
             next_v = self.critic_values(self.critic_target, batch.next_obs, skill, next_action, run).amin(0)
             target = reward + batch.discount * next_v  # (K, N, 1)
         q = self.critic_values(self.critic, batch.obs, skill, batch.action, run)  # (2, K, N, 1)
@@ -117,7 +118,7 @@ class CeSDCore(DDPGCore):
     def actor_loss(self, obs: torch.Tensor, skill: torch.Tensor, run=call_network) -> torch.Tensor:
         """``-mean_{k, i} z_ik min(Q1_k, Q2_k)(s_i, a_i)``, ``a_i`` a clipped-noise sample of pi."""
         c = self.config
-        action = training_action(run(self.actor, obs, skill), c.stddev, c.stddev_clip)
+        action = training_action(run(self.actor, obs, skill), c.stddev, c.stddev_clip, self.generator)
         q = self.critic_values(self.critic, obs, skill, action, run).amin(0).squeeze(-1)  # (K, N)
         return -(skill.T * q).mean()
 

@@ -49,6 +49,8 @@ class DDPGConfig:
 class DDPGCore(nn.Module):
     """Actor, twin critic and target critic, and one DDPG update given the reward of a batch."""
 
+    generator: torch.Generator | None = None  # the run's stream for the policy noise (None: global)
+
     def __init__(self, obs_dim: int, skill_dim: int, action_dim: int, config: DDPGConfig):
         super().__init__()
         self.config = config
@@ -80,14 +82,15 @@ class DDPGCore(nn.Module):
     def critic_loss(self, batch: Batch, skill: torch.Tensor, reward: torch.Tensor, run=call_network) -> torch.Tensor:
         c = self.config
         with torch.no_grad():
-            next_action = training_action(run(self.actor, batch.next_obs, skill), c.stddev, c.stddev_clip)
+            next_action = training_action(run(self.actor, batch.next_obs, skill), c.stddev, c.stddev_clip,
+                                          self.generator)
             next_q = self.critic_values(self.critic_target, batch.next_obs, skill, next_action, run).amin(0)  # (N, 1)
             target = reward + batch.discount * next_q
         return twin_td_loss(self.critic_values(self.critic, batch.obs, skill, batch.action, run), target)
 
     def actor_loss(self, obs: torch.Tensor, skill: torch.Tensor, run=call_network) -> torch.Tensor:
         c = self.config
-        action = training_action(run(self.actor, obs, skill), c.stddev, c.stddev_clip)
+        action = training_action(run(self.actor, obs, skill), c.stddev, c.stddev_clip, self.generator)
         return -self.critic_values(self.critic, obs, skill, action, run).amin(0).mean()
 
     def update(self, batch: Batch, reward: torch.Tensor, metrics: dict, run=call_network) -> None:

@@ -199,7 +199,7 @@ class FBAgent(Agent):
 
     # Skills, replay and acting (the Agent interface) -------------------------------------------
     def sample_z(self, n: int = 1, generator: torch.Generator | None = None) -> torch.Tensor:
-        return sample_z_prior(n, self.config.z_dim, self.device, generator)
+        return sample_z_prior(n, self.config.z_dim, self.device, generator if generator is not None else self.generator)
 
     @property
     def policy_stddev(self) -> float:
@@ -240,10 +240,10 @@ class FBAgent(Agent):
         """Prior z's with a ``mix_ratio`` share replaced by projected B of replay data (§5.3)."""
         c = self.config
         n = batch.obs.shape[0]
-        z = sample_z_prior(n, c.z_dim, self.device)
+        z = sample_z_prior(n, c.z_dim, self.device, self.generator)
         if c.mix_ratio <= 0:
             return z
-        perm = torch.randperm(n, device=self.device)
+        perm = torch.randperm(n, device=self.device, generator=self.generator)
         if c.backward_input == "state":
             goal_input = batch.obs[perm]
         elif c.backward_input == "transition":
@@ -251,7 +251,7 @@ class FBAgent(Agent):
         else:  # code_exact (D1 b): pairs of unrelated states
             goal_input = torch.cat([batch.obs, batch.obs[perm]], dim=-1)
         goals = project_to_sphere(self.net_runner(self.backward_map, goal_input))
-        replace = torch.rand(n, 1, device=self.device) < c.mix_ratio
+        replace = torch.rand(n, 1, device=self.device, generator=self.generator) < c.mix_ratio
         return torch.where(replace, goals, z)
 
     # The update ---------------------------------------------------------------------------------
@@ -262,7 +262,7 @@ class FBAgent(Agent):
         metrics: dict[str, torch.Tensor] = {}
         z = self.training_z(batch)
         with torch.no_grad():
-            next_action = training_action(run(self.actor, batch.next_obs, z), c.stddev, c.stddev_clip)
+            next_action = training_action(run(self.actor, batch.next_obs, z), c.stddev, c.stddev_clip, self.generator)
         online_input, target_input = self.backward_inputs(batch)
         backward = run(self.backward_map, online_input)  # reused by the FB, Q and ortho losses
         if c.backward_input == "code_exact":
@@ -327,7 +327,7 @@ class FBAgent(Agent):
         """``-mean(Q_M + bonus)`` with ``Q_M = min_k F_k(s, a~, z) . z`` (§7.11)."""
         c = self.config
         run = self.net_runner
-        action = training_action(run(self.actor, obs, z), c.stddev, c.stddev_clip)
+        action = training_action(run(self.actor, obs, z), c.stddev, c.stddev_clip, self.generator)
         skill_value = skill_values(run(self.forward_map, obs, action, z), z).amin(0)
         objective = skill_value
         bonus = self._actor_bonus(obs, z, action, skill_value, metrics)

@@ -97,7 +97,7 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
     """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary."""
     from dvfb import envs
     from dvfb.runs import write_json_atomic
-    from dvfb.training.seeding import seed_everything
+    from dvfb.training.seeding import run_generator, seed_everything
     from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 
     if actions not in ACTION_MODES:
@@ -124,6 +124,7 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
     agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
     seed = config.seed if seed is None else seed
     seed_everything(seed)
+    agent.use_generator(run_generator(seed, agent.device))  # the analysis' own random stream
     started = time.time()
     zs = agent.sample_skill(skills)
     if zs is None:

@@ -119,7 +119,7 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
     from dvfb import envs
     from dvfb.config import to_dict
     from dvfb.runs import write_json_atomic
-    from dvfb.training.seeding import seed_everything
+    from dvfb.training.seeding import run_generator, seed_everything
     from dvfb.workflows.resources import check_task_in_domain
     from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
     from dvfb.workflows.zeroshot import run_protocol
@@ -142,6 +142,7 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
                             "such as fb or dvfb)")
     seed = config.seed if seed is None else seed
     rng = seed_everything(seed)
+    agent.use_generator(run_generator(seed, agent.device))  # the analysis' own random stream
     started = time.time()
     max_len = envs.TASKS[task].episode_length
 

@@ -142,7 +142,7 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:
 def _task_vector(run, config, agent, task: str, snapshot: int, final: int, inference: dict | None,
                  seed: int, infer: bool) -> tuple[torch.Tensor, str]:
     from dvfb import envs
-    from dvfb.training.seeding import seed_everything
+    from dvfb.training.seeding import run_generator, seed_everything
     from dvfb.workflows.zeroshot import result_path, run_protocol
 
     stored = result_path(run, task, snapshot, final)
@@ -152,6 +152,7 @@ def _task_vector(run, config, agent, task: str, snapshot: int, final: int, infer
             return torch.tensor(data["z"], dtype=torch.float32, device=agent.device), f"z from {stored}"
     protocol = run_protocol(config, inference)
     rng = seed_everything(seed)
+    agent.use_generator(run_generator(seed, agent.device))  # the analysis' own random stream
     env = envs.make(task, seed=seed)
     z, _info = protocol.task_skill(agent, env, rng, envs.TASKS[task].episode_length)
     return z, f"skill found by {protocol.name} in {protocol.task_steps()} reward-labelled steps"

@@ -105,7 +105,7 @@ class DualValueFinetuner(Finetuner):
         z = self.z.expand(n, -1)
         reward = self.mapped_reward(batch, metrics)
         with torch.no_grad():
-            next_action = training_action(actor(batch.next_obs, z), fb.stddev, fb.stddev_clip)
+            next_action = training_action(actor(batch.next_obs, z), fb.stddev, fb.stddev_clip, self.agent.generator)
             next_q = self.task_critic_target(batch.next_obs, z, next_action).amin(0)
             target = reward + batch.discount * next_q
         q = self.task_critic(batch.obs, z, batch.action)
@@ -114,7 +114,7 @@ class DualValueFinetuner(Finetuner):
         critic_loss.backward()
         self.critic_optimizer.step()
 
-        action = training_action(actor(batch.obs, z), fb.stddev, fb.stddev_clip)
+        action = training_action(actor(batch.obs, z), fb.stddev, fb.stddev_clip, self.agent.generator)
         task_value = self.task_critic(batch.obs, z, action).amin(0).squeeze(-1)
         objective = self.config.qf_coef * task_value
         if self.config.eta != 0 or self.config.eta_mode == "adaptive":

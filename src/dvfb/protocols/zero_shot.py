@@ -100,9 +100,9 @@ def infer_task_vector(agent, buffer: ReplayBuffer, config: InferenceConfig) -> t
     if n == 0:
         raise ConfigError("no reward-labelled transitions to infer z from (inference.steps is 0?)")
     if config.with_replacement:
-        index = torch.randint(0, n, (config.samples,), device=data.obs.device)
+        index = torch.randint(0, n, (config.samples,), device=data.obs.device, generator=agent.generator)
     else:
-        index = torch.randperm(n, device=data.obs.device)[: config.samples]
+        index = torch.randperm(n, device=data.obs.device, generator=agent.generator)[: config.samples]
     return agent.infer_skill(data.obs[index], data.next_obs[index], data.reward[index], config)
 
 
@@ -134,7 +134,7 @@ class RewardInference(ZeroShotProtocol):
 
     def skill_from_samples(self, agent, obs, next_obs, reward):
         check_finite("the reward function's output", reward)
-        index = torch.randperm(reward.shape[0], device=reward.device)[: self.config.samples]
+        index = torch.randperm(reward.shape[0], device=reward.device, generator=agent.generator)[: self.config.samples]
         return agent.infer_skill(obs[index], next_obs[index], reward[index], self.config)
 
     def skill_from_goal(self, agent, goal):

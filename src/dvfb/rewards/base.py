@@ -36,6 +36,9 @@ class IntrinsicReward(nn.Module):
     :meth:`score`, and build ``self.optimizer`` in :meth:`make_optimizer` when they learn."""
 
     optimizer: torch.optim.Optimizer | None = None
+    # The run's random stream for modules that draw (Proto's and CeSD's samples, SMM's noise);
+    # None: torch's global one. Set by the owning agent (Agent.use_generator).
+    generator: torch.Generator | None = None
 
     def make_optimizer(self, lr: float, fused: bool = True) -> None:
         """Create ``self.optimizer`` (Adam) over the module's trainable parameters; the agent calls

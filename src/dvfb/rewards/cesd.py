@@ -149,7 +149,7 @@ class CeSDReward(CICReward):
         """One cluster per state, ``(N,)``, drawn from ``softmax(C normalize(rep) / T_p)`` with
         torch's random stream (no host sync)."""
         self.normalize_protos()
-        return sample_one_per_row(F_nn.softmax(self.cluster_scores(rep, run), dim=1))
+        return sample_one_per_row(F_nn.softmax(self.cluster_scores(rep, run), dim=1), self.generator)
 
     def prototype_loss(self, batch: Batch, run: Runner = call_network,
                        next_rep: torch.Tensor | None = None) -> torch.Tensor:

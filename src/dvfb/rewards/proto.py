@@ -67,7 +67,7 @@ def sinkhorn_knopp(scores: torch.Tensor, iters: int = 3) -> torch.Tensor:
     return q.T
 
 
-def sample_one_per_row(prob: torch.Tensor) -> torch.Tensor:
+def sample_one_per_row(prob: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
     """One index per row of ``prob`` (``(P, N)``, rows summing to 1), drawn from that row: ``(P,)``.
 
     This is exactly what ``torch.multinomial(prob, 1)`` computes on its one-sample path (the
@@ -75,7 +75,7 @@ def sample_one_per_row(prob: torch.Tensor) -> torch.Tensor:
     under the same seed), without the validity check that some torch versions perform by reading
     a value back to the host on every call.
     """
-    race = torch.empty_like(prob).exponential_(1.0)
+    race = torch.empty_like(prob).exponential_(1.0, generator=generator)
     return (prob / race).argmax(dim=1)
 
 
@@ -150,6 +150,6 @@ class ProtoReward(IntrinsicReward):
         self.normalize_protos()  # the update's optimiser step moved the prototypes
         z = F_nn.normalize(run(self.predictor, batch.next_obs), dim=1)
         scores = run(self.protos, z).T  # (num_protos, N)
-        candidates = sample_one_per_row(F_nn.softmax(scores, dim=1))  # one batch row per prototype
+        candidates = sample_one_per_row(F_nn.softmax(scores, dim=1), self.generator)  # one batch row per prototype
         self.enqueue(z[candidates])
         return nearest_distances(z, self.queue, self.config.topk)[:, -1:]

@@ -92,7 +92,8 @@ class SMMReward(IntrinsicReward):
         """
         obs_z = torch.cat([batch.obs, batch.z], dim=-1)
         if noise is None:
-            noise = torch.randn(obs_z.shape[0], self.config.code_dim, device=obs_z.device, dtype=obs_z.dtype)
+            noise = torch.randn(obs_z.shape[0], self.config.code_dim, device=obs_z.device, dtype=obs_z.dtype,
+                                generator=self.generator)
         features = run(self.vae["encoder"], obs_z)
         mean, log_var = run(self.vae["mean"], features), run(self.vae["log_var"], features)
         code = mean + noise * torch.exp(0.5 * log_var)

@@ -44,7 +44,7 @@ from dvfb.runs import (
 from dvfb.training import loop
 from dvfb.training.loop import EpisodeState, OnlineCollector
 from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, notify
-from dvfb.training.seeding import restore_rng_state, rng_state, seed_everything
+from dvfb.training.seeding import check_resume_format, restore_rng_state, rng_state, run_generator, seed_everything
 from dvfb.workflows.resources import check_task_in_domain
 from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 from dvfb.workflows.config import protocol_fields
@@ -52,6 +52,7 @@ from dvfb.workflows.evaluate import Evaluation, evaluate_policy
 from dvfb.workflows.zeroshot import task_skill
 
 RESUME_KIND = "finetune_resume"
+RESUME_FORMAT = 2  # as pre-training's: 2 holds the run's torch generator
 
 
 @dataclass
@@ -152,6 +153,7 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
             raise CheckpointError(f"cannot resume {path}: {exc}") from exc
         if state.get("kind") != RESUME_KIND:
             raise CheckpointError(f"{path}: the latest checkpoint is not a fine-tuning checkpoint")
+        check_resume_format(state, path)
     else:
         ft_run = RunDir.create(path, run_config, overwrite=overwrite)
 
@@ -162,8 +164,9 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
     replay = ReplayBuffer(cfg.replay_capacity, agent.obs_dim, agent.action_dim, agent.skill_dim,
                           max_episode_length=max_len, device=agent.device)
     finetuner_cls = finetuner_class(get_spec(config.agent).finetuner)
-    # The fine-tuner's own random stream for rollout skills it redraws (--finetune.skill resample).
-    skill_generator = torch.Generator(device=agent.device).manual_seed(run_config.seed)
+    # The run's own random stream: the protocol's and the fine-tuner's draws, noise and batches.
+    generator = run_generator(run_config.seed, agent.device)
+    agent.use_generator(generator)
     started = time.time()
     episode = EpisodeState()
 
@@ -176,8 +179,7 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
             restore_rng_state(state["rng"], rng)
             env.unwrapped.set_rng_state(state["env_rng"])
             eval_env.unwrapped.set_rng_state(state["eval_env_rng"])
-            if "skill_generator" in state:
-                skill_generator.set_state(state["skill_generator"])
+            generator.set_state(state["generator"])
             step, curve, inference_info = state["step"], state["curve"], state["inference_info"]
             if state.get("episode_state") is not None:  # written mid-episode on a signal
                 env.unwrapped.set_episode_state(state["episode_state"]["env"])
@@ -210,14 +212,14 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
     finetuner.bind_replay(replay)
     bar = Progress(cfg.frames, step, f"finetune {task}", progress)
     collector = OnlineCollector(
-        env, replay, agent, rng, lambda t, starting, current: finetuner.rollout_skill(t, starting, current, skill_generator),
+        env, replay, agent, rng, lambda t, starting, current: finetuner.rollout_skill(t, starting, current, generator),
         lambda t: finetuner.uniform_seed_actions and t < cfg.seed_frames, state=episode)
 
     def save_resume(mid_episode: bool = False) -> None:
         checkpoint = {
             "kind": RESUME_KIND, "step": step, "z": None if z is None else z.cpu(), "curve": curve,
             "inference_info": inference_info, "finetuner": finetuner.training_state(),
-            "replay": replay.state_dict(), "rng": rng_state(rng), "skill_generator": skill_generator.get_state(),
+            "replay": replay.state_dict(), "rng": rng_state(rng), "generator": generator.get_state(), "format": RESUME_FORMAT,
             "env_rng": env.unwrapped.get_rng_state(), "eval_env_rng": eval_env.unwrapped.get_rng_state()}
         if mid_episode:
             checkpoint["episode_state"] = {"env": env.unwrapped.get_episode_state(), "obs": torch.as_tensor(episode.obs),
@@ -240,7 +242,7 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
                                     ft_run.path, last=step if state is not None else None)
     try:
         with checkpoints:
-            step = loop.run(step, cfg.frames, collector, lambda: finetuner.update(needs.sample(replay)),
+            step = loop.run(step, cfg.frames, collector, lambda: finetuner.update(needs.sample(replay, generator)),
                             cfg.seed_frames, cfg.update_every, window, checkpoints, bar, after_step)
     finally:
         bar.close()

@@ -50,7 +50,7 @@ from dvfb.runs import (
 from dvfb.training import loop
 from dvfb.training.loop import EpisodeState, OnlineCollector
 from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, notify
-from dvfb.training.seeding import restore_rng_state, rng_state, seed_everything
+from dvfb.training.seeding import check_resume_format, restore_rng_state, rng_state, run_generator, seed_everything
 from dvfb.workflows.resources import check_memory, learner_state_bytes, setup_torch
 from dvfb.workflows.snapshots import snapshot_name, snapshot_state
 from dvfb.workflows.config import PretrainConfig, load_run_config
@@ -58,6 +58,9 @@ from dvfb.workflows.config import PretrainConfig, load_run_config
 log = logging.getLogger(__name__)
 
 RESUME_KIND = "pretrain_resume"
+# Format of resume checkpoints. 1: before runs owned their random streams; 2: adds the state of the
+# run's torch generator (every skill draw, policy noise and batch). Format 1 cannot resume exactly.
+RESUME_FORMAT = 2
 # Fields that may change between a run and its resumption without changing what is computed.
 RESUMABLE_CHANGES = ("frames", "device", "torch_threads", "log_every")
 # perf options that only change how the same operations execute (perf.precision changes numerics).
@@ -133,6 +136,7 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
             raise CheckpointError(f"cannot resume {run.path}: {exc}") from exc
         if state.get("kind") != RESUME_KIND or state.get("agent") != config.agent:
             raise CheckpointError(f"{run.path}: the latest checkpoint is not a {config.agent} pre-training checkpoint")
+        check_resume_format(state, run.path)
         if state["step"] >= config.frames:
             raise ConfigError(f"--frames {config.frames} is not beyond the checkpoint's step {state['step']}; "
                               "pass a larger --frames to extend the run")
@@ -144,9 +148,13 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
 
     step = 0
     episode = EpisodeState()
+    # The run's own random stream: skill draws, policy noise, the agent's modules and its batches.
+    generator = run_generator(config.seed, device)
+    agent.use_generator(generator)
     if state is not None:
         try:
             agent.load_training_state(state["agent_state"])
+            generator.set_state(state["generator"])
             replay.load_state_dict(state["replay"])
             restore_rng_state(state["rng"], rng)
             env.unwrapped.set_rng_state(state["env_rng"])
@@ -182,7 +190,8 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
 
     def save_resume(mid_episode: bool = False) -> None:
         checkpoint = {
-            "kind": RESUME_KIND, "agent": config.agent, "config": to_dict(config), "step": step,
+            "kind": RESUME_KIND, "format": RESUME_FORMAT, "agent": config.agent, "config": to_dict(config),
+            "step": step, "generator": generator.get_state(),
             "episode": episode.episode, "agent_state": agent.training_state(), "replay": replay.state_dict(),
             "rng": rng_state(rng), "env_rng": env.unwrapped.get_rng_state()}
         if mid_episode:
@@ -211,7 +220,7 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
                                     run.path, last=step if state is not None else None)
     try:
         with checkpoints:
-            step = loop.run(step, config.frames, collector, lambda: agent.update(needs.sample(replay)),
+            step = loop.run(step, config.frames, collector, lambda: agent.update(needs.sample(replay, generator)),
                             config.seed_frames, config.update_every, window, checkpoints, bar, after_step,
                             after_episode)
     finally:

@@ -34,6 +34,7 @@ from dvfb.training.monitor import Progress
 from dvfb.training.seeding import seed_everything
 from dvfb.workflows.resources import check_task_in_domain
 from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
+from dvfb.training.seeding import run_generator
 from dvfb.workflows.config import PretrainConfig
 from dvfb.workflows.evaluate import Evaluation, evaluate_policy, run_episodes
 
@@ -112,6 +113,7 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     check_writable(out.parent if out.parent.exists() else run.path)
     seed = config.seed if seed is None else seed
     rng = seed_everything(seed)
+    agent.use_generator(run_generator(seed, agent.device))  # the evaluation's own random stream
     started = time.time()
     episode_length = envs.TASKS[task].episode_length
     bar = Progress(protocol.task_steps(z_source) + protocol.eval_episodes * episode_length, 0, f"zeroshot {task}",
