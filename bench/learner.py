@@ -77,7 +77,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from dvfb.agents import agent_names, get_spec, make_agent
-from dvfb.agents.perf import PerfConfig, bf16_matmul_is_fast
+from dvfb.execution import PerfConfig, bf16_matmul_is_fast
 from dvfb.config import merge, replace, to_dict
 from dvfb.replay import ReplayBuffer
 from dvfb.runs import read_metrics

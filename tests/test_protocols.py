@@ -176,7 +176,6 @@ def test_urlb_fine_tuning_skill_modes():
 def test_an_agent_with_a_run_generator_draws_nothing_from_the_global_stream(agent_name):
     """Skills, policy noise, the update's noise and the reward modules' samples all come from the
     run's generator: with the same generator state, changing torch's global stream changes nothing."""
-    from dvfb.agents.base import ReplayNeeds  # noqa: F401
     from test_agents import filled_replay
 
     results = []

@@ -84,7 +84,7 @@ BAD_ZEROSHOT = [
     (["--inference.eval-episodes", "0"], "--inference.eval-episodes 0 is out of range"),
     (["--inference.reward-quantile", "2"], "--inference.reward-quantile 2.0 is out of range: it must be >= 0 and <= 1"),
     (["--inference.random-action-steps", "300"], "must be at most --inference.steps 200"),
-    (["--z-source", "goal", "--goal", "1,2,3"], "--goal has 3 values but point_mass_maze observations have 4"),
+    (["--skill-source", "goal", "--goal", "1,2,3"], "--goal has 3 values but point_mass_maze observations have 4"),
 ]
 
 

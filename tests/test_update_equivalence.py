@@ -11,7 +11,7 @@ permutation, mixing mask and policy noise.
 
 Also here: the no-host-sync check of the update path, "each forward pass once per update" (a
 forward-call count per network), vectorised replay sampling, and the precision / compile / CUDA
-graph options of :mod:`dvfb.agents.perf`.
+graph options of :mod:`dvfb.execution`.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import dvfb
 from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig
 from dvfb.agents.fb import FBAgent, FBConfig
 from dvfb.rewards.contrastive import contrastive_entropy_reward
-from dvfb.agents.perf import NetRunner, PerfConfig
+from dvfb.execution import NetRunner, PerfConfig
 from dvfb.errors import ConfigError
 from dvfb.nets import TwinHead
 from dvfb.replay import Batch, ReplayBuffer

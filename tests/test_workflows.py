@@ -80,14 +80,14 @@ def test_zeroshot_then_finetune(pretrained: Path, capsys):
 def test_reward_fn_and_goal_inference(pretrained: Path, tmp_path: Path):
     reward_file = tmp_path / "reward.py"
     reward_file.write_text("import numpy as np\n\ndef right_side(next_obs):\n    return (next_obs[:, 0] > 0).astype(np.float32)\n")
-    assert main(["zeroshot", str(pretrained), "--task", "point_mass_maze_reach_top_right", "--z-source", "reward_fn",
+    assert main(["zeroshot", str(pretrained), "--task", "point_mass_maze_reach_top_right", "--skill-source", "reward_fn",
                  "--reward-fn", f"{reward_file}:right_side", "--inference.eval-episodes", "1"]) == 0
     result = json.loads((pretrained / "zeroshot" / "point_mass_maze_reach_top_right.json").read_text())
-    assert result["z_source"] == "reward_fn" and result["inference_info"]["num_samples"] > 0
-    assert main(["zeroshot", str(pretrained), "--task", "point_mass_maze_reach_bottom_left", "--z-source", "goal",
+    assert result["skill_source"] == "reward_fn" and result["inference_info"]["num_samples"] > 0
+    assert main(["zeroshot", str(pretrained), "--task", "point_mass_maze_reach_bottom_left", "--skill-source", "goal",
                  "--goal=-0.15,-0.15,0,0", "--inference.eval-episodes", "1"]) == 0
     result = json.loads((pretrained / "zeroshot" / "point_mass_maze_reach_bottom_left.json").read_text())
-    assert result["z_source"] == "goal" and len(result["z"]) == 16
+    assert result["skill_source"] == "goal" and len(result["z"]) == 16
 
 
 def _snapshot_tensors(run_dir: Path, frames: int) -> dict[str, torch.Tensor]:

@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 from dvfb.agents import get_spec
-from dvfb.config import merge
 from dvfb.errors import ConfigError
 from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 

@@ -136,7 +136,7 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
     rows = []
     for task in tasks:
         result = zeroshot(args.run, task, snapshot=args.snapshot, inference=inference, seed=args.seed,
-                          z_source=args.z_source, reward_fn=args.reward_fn, goal=goal,
+                          skill_source=args.skill_source, reward_fn=args.reward_fn, goal=goal,
                           overwrite=args.overwrite, progress=args.progress)
         rows.append((task, result["mean_return"], result["std_return"], result["eval_episodes"],
                      result.get("success_rate")))
@@ -330,7 +330,7 @@ def cmd_video(args: argparse.Namespace) -> int:
                           snapshot=args.snapshot, seed=args.seed, infer=args.infer, overwrite=args.overwrite)
     returns = ", ".join(f"{r:.1f}" for r in result["returns"])
     print(f"{result['path']}: {result['episodes']} episode(s), {result['frames']} frames at {result['fps']:g} fps; "
-          f"returns {returns}; {result['z_source']}")
+          f"returns {returns}; {result['skill_source']}")
     return 0
 
 
@@ -389,8 +389,11 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
     p.add_argument("run", help="pre-training run directory")
     p.add_argument("--task", nargs="+", required=True, help="task name(s) of the run's domain, or 'all'")
     add_snapshot_and_seed(p, "task seed")
-    p.add_argument("--z-source", default="rewards", choices=("rewards", "reward_fn", "goal"),
-                   help="how z is obtained (default: %(default)s)")
+    p.add_argument("--skill-source", "--z-source", dest="skill_source", default="rewards",
+                   choices=("rewards", "reward_fn", "goal"),
+                   help="where the task's skill comes from: interaction with the task (every method), a reward "
+                        "function over the run's replay states, or a goal (methods that infer skills); "
+                        "--z-source is the old name (default: %(default)s)")
     p.add_argument("--reward-fn", default=None, help="module:function or file.py:function mapping next_obs (N, O) to rewards")
     p.add_argument("--goal", default=None, help="goal observation: a .npy file or comma-separated numbers")
     p.add_argument("--overwrite", action="store_true", help="replace an existing result file")

@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGCore, IntrinsicDDPGAgent
-from dvfb.agents.perf import requires_grad_disabled
+from dvfb.execution import requires_grad_disabled
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.config import param
 from dvfb.nets import TwinHead, call_network, layernorm_tanh_layer, orthogonal_init_, soft_update_, training_action

@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from dvfb.agents.base import Agent, ReplayNeeds, no_skill_like
-from dvfb.agents.perf import NetRunner, PerfConfig, requires_grad_disabled
+from dvfb.execution import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.config import param
 from dvfb.nets import Actor, TwinCritic, adam, call_network, make_target, soft_update_, training_action, twin_td_loss
 from dvfb.replay import Batch

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from dvfb.agents.fb import FB_SMALL, FBAgent, FBConfig, fb_finetune_label
-from dvfb.agents.perf import PerfConfig
+from dvfb.execution import PerfConfig
 from dvfb.agents.registry import AgentSpec, config_field, register
 from dvfb.config import param
 from dvfb.nets import TwinCritic, adam, make_target, twin_td_loss

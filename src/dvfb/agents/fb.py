@@ -13,7 +13,7 @@ synchronises with the host (tests/test_update_equivalence.py checks this, and ch
 gradient of a full update against a plain reference implementation). The target EMAs are one fused
 call over all target parameters, and the actor loss is built with F (and Q_P) excluded from autograd,
 so its graph holds only the path from the action to the actor. How the networks execute
-(precision, torch.compile) is :mod:`dvfb.agents.perf`'s business: every network call of the update
+(precision, torch.compile) is :mod:`dvfb.execution`'s business: every network call of the update
 goes through :attr:`FBAgent.net_runner`.
 """
 
@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from dvfb.agents.base import Agent, ReplayNeeds
-from dvfb.agents.perf import NetRunner, PerfConfig, requires_grad_disabled
+from dvfb.execution import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.config import param
 from dvfb.nets import (
     adam,

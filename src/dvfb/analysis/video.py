@@ -189,7 +189,7 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
         env.reset()
         renderer.frame()
         agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
-        z, z_source = _task_vector(run, config, agent, task, snapshot, max(config.frames, snapshot), inference,
+        z, skill_source = _task_vector(run, config, agent, task, snapshot, max(config.frames, snapshot), inference,
                                    seed, infer)
         frames, returns = [], []
         fps = env.metadata["render_fps"] / frame_skip
@@ -210,4 +210,4 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
         renderer.close()
     write_video(out, frames, fps)
     return {"path": str(out), "task": task, "episodes": episodes, "returns": returns, "frames": len(frames),
-            "fps": fps, "z_source": z_source, "snapshot_frames": snapshot, "wall_clock_s": time.time() - started}
+            "fps": fps, "skill_source": skill_source, "snapshot_frames": snapshot, "wall_clock_s": time.time() - started}

@@ -53,7 +53,7 @@ class ZeroShotProtocol:
         if source not in SKILL_SOURCES:
             raise ConfigError(f"skill source must be one of {SKILL_SOURCES}, got {source!r}")
         if source not in self.sources:
-            raise ConfigError(f"--z-source {source} needs a method that infers skills from data; {agent_name!r} "
+            raise ConfigError(f"--skill-source {source} needs a method that infers skills from data; {agent_name!r} "
                               f"uses the {self.name} protocol (use the default)")
 
     def task_skill(self, agent, env, rng: np.random.Generator, episode_length: int, *, progress=None,

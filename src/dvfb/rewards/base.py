@@ -14,7 +14,7 @@ the n-step successor ``s_{t+n}``; for DVFB it is ``s_{t+1}``. ``batch.z`` is the
 module may read (DVFB passes B's labels there).
 
 ``run(net, *inputs)`` is how a module calls its networks: agents pass their
-:class:`~dvfb.agents.perf.NetRunner` so that precision and compilation apply; the default calls
+:class:`~dvfb.execution.NetRunner` so that precision and compilation apply; the default calls
 the network directly.
 """
 

@@ -28,7 +28,7 @@ from typing import Any
 import torch
 
 from dvfb.agents import get_spec
-from dvfb.agents.perf import PerfConfig
+from dvfb.execution import PerfConfig
 from dvfb.protocols import protocols_of
 from dvfb.protocols.zero_shot import InferenceConfig
 from dvfb.config import from_dict, merge, param, replace, require_updates

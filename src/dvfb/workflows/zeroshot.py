@@ -89,7 +89,7 @@ def result_path(run: RunDir, task: str, snapshot: int, final_snapshot: int) -> P
 
 
 def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, inference: dict | None = None,
-             seed: int | None = None, z_source: str = "rewards", reward_fn: str | Callable | None = None,
+             seed: int | None = None, skill_source: str = "rewards", reward_fn: str | Callable | None = None,
              goal: np.ndarray | None = None, overwrite: bool = False, device: str | None = None,
              progress: bool | None = None) -> dict:
     """Find the task's skill by the run's zero-shot protocol and evaluate ``pi(., skill)``; returns
@@ -100,14 +100,14 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     """
     run, config = open_pretrained_run(run_path)
     protocol = run_protocol(config, inference)
-    protocol.check_source(z_source, config.agent)
+    protocol.check_source(skill_source, config.agent)
     check_task_in_domain(task, config.domain)
     agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
     final = max(config.frames, snapshot)
     out = result_path(run, task, snapshot, final)
     if out.exists() and not overwrite:
         raise RunDirError(f"{out} exists; pass --overwrite to replace it")
-    if goal is not None and z_source == "goal":
+    if goal is not None and skill_source == "goal":
         check_goal(goal, agent.goal_widths(), config.domain)
     # The result is written at the end: fail now, not after the work, if it cannot be.
     check_writable(out.parent if out.parent.exists() else run.path)
@@ -116,10 +116,10 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     agent.use_generator(run_generator(seed, agent.device))  # the evaluation's own random stream
     started = time.time()
     episode_length = envs.TASKS[task].episode_length
-    bar = Progress(protocol.task_steps(z_source) + protocol.eval_episodes * episode_length, 0, f"zeroshot {task}",
+    bar = Progress(protocol.task_steps(skill_source) + protocol.eval_episodes * episode_length, 0, f"zeroshot {task}",
                    progress, unit="step")
     try:
-        z, info = task_skill(agent, run, config, task, protocol, rng, seed, z_source, reward_fn, goal, progress=bar)
+        z, info = task_skill(agent, run, config, task, protocol, rng, seed, skill_source, reward_fn, goal, progress=bar)
         eval_env = envs.make(task, seed=seed)
         evaluation = evaluate_policy(agent, eval_env, z, protocol.eval_episodes, progress=bar)
     finally:
@@ -127,7 +127,7 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     result = {
         "task": task, "domain": config.domain, "agent": config.agent, "preset": config.preset,
         "pretrain_seed": config.seed, "seed": seed, "snapshot_frames": snapshot, "protocol": protocol.name,
-        "z_source": z_source if agent.skill.has_skill else "none",
+        "skill_source": skill_source if agent.skill.has_skill else "none",
         "inference": to_dict(protocol.config), "inference_info": info, "z": None if z is None else z.cpu().tolist(),
         **evaluation.summary(), "eval_episodes": len(evaluation.returns), "wall_clock_s": time.time() - started,
     }
@@ -137,28 +137,28 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
 
 
 def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, protocol: ZeroShotProtocol,
-               rng: np.random.Generator, seed: int, z_source: str = "rewards", reward_fn: str | Callable | None = None,
+               rng: np.random.Generator, seed: int, skill_source: str = "rewards", reward_fn: str | Callable | None = None,
                goal: np.ndarray | None = None, keep_data: bool = False, env=None,
                progress=None) -> tuple[torch.Tensor | None, dict]:
     """The skill the policy is evaluated with, by the run's zero-shot protocol.
 
-    ``z_source``: interaction with the task (``rewards``), a reward function over the run's replay
+    ``skill_source``: interaction with the task (``rewards``), a reward function over the run's replay
     states, or a goal, where the protocol supports them. With ``keep_data`` the collected buffer is
     returned in ``info["buffer"]`` (fine-tuning's D12 option). ``env``: the task environment to
     collect in (fine-tuning goes on in the same one); by default a new one.
     """
-    protocol.check_source(z_source, config.agent)
-    if z_source == "rewards":
+    protocol.check_source(skill_source, config.agent)
+    if skill_source == "rewards":
         env = env if env is not None else envs.make(task, seed=seed)
         return protocol.task_skill(agent, env, rng, envs.TASKS[task].episode_length, progress=progress,
                                    keep_data=keep_data)
-    if z_source == "reward_fn":
+    if skill_source == "reward_fn":
         if reward_fn is None:
-            raise ConfigError("z_source 'reward_fn' needs a reward function")
+            raise ConfigError("skill_source 'reward_fn' needs a reward function")
         fn = load_reward_fn(reward_fn) if isinstance(reward_fn, str) else reward_fn
         return infer_from_reward_fn(agent, run, config, fn, protocol)
     if goal is None:
-        raise ConfigError("z_source 'goal' needs a goal observation")
+        raise ConfigError("skill_source 'goal' needs a goal observation")
     return protocol.skill_from_goal(agent, goal)
 
 

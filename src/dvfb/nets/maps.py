@@ -1,0 +1,69 @@
+"""The FB family's maps (docs/methods.md §4.2-§4.4): F, B, the skill values ``F.z`` and the twin
+critic ``Q(s, a, z)`` (also the DDPG core's, with ``out_dim`` for successor features)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from dvfb.nets.geometry import project_to_sphere
+from dvfb.nets.layers import TwinHead, full_precision, layernorm_tanh_layer, mlp, orthogonal_init_
+from dvfb.nets.policy import TwoStreamEncoder
+
+
+class ForwardMap(nn.Module):
+    """``F_k(s, a, z)``, k = 1..num_heads, on shared ``[s, a]`` and ``[s, z]`` streams (§4.2).
+
+    Returns ``(K, N, d)``. The skill value is ``Q_M,k = F_k . z`` (:func:`skill_values`).
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, z_dim: int, hidden_dim: int,
+                 feature_dim: int, num_heads: int = 2):
+        super().__init__()
+        self.encoder = TwoStreamEncoder(obs_dim + action_dim, obs_dim + z_dim, hidden_dim, feature_dim)
+        self.heads = TwinHead(self.encoder.out_dim, hidden_dim, z_dim, num_heads)
+        orthogonal_init_(self)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        h = self.encoder(torch.cat([obs, action], dim=-1), torch.cat([obs, z], dim=-1))
+        return self.heads(h)
+
+
+def skill_values(forward_out: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """``Q_M,k = F_k . z`` for every head: ``(K, N, d), (N, d) -> (K, N)``."""
+    return (forward_out * z.unsqueeze(0)).sum(-1)
+
+
+class BackwardMap(nn.Module):
+    """``B(x) = proj(MLP(x))`` with ``||B(x)|| = sqrt(d)`` (§4.3).
+
+    ``input_dim`` is O in ``state`` mode and 2*O in ``transition`` / ``code_exact`` modes.
+    """
+
+    def __init__(self, input_dim: int, hidden_dim: int, z_dim: int):
+        super().__init__()
+        self.net = mlp(input_dim, hidden_dim, hidden_dim, z_dim, first_layer_lnt=True)
+        orthogonal_init_(self)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        # The projection is a reduction: float32 even under bf16 autocast.
+        return project_to_sphere(full_precision(self.net(x)))
+
+
+class TwinCritic(nn.Module):
+    """``Q_k(s, a, z)``: a shared ``LNT([s, z, a] -> H)`` trunk and K heads ``H -> H -> 1`` (§4.4).
+
+    Used for the exploration critic Q_P (pre-training), the task critic Q_F (fine-tuning) and the
+    DDPG core. Returns ``(K, N, out_dim)``.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, z_dim: int, hidden_dim: int, num_heads: int = 2,
+                 out_dim: int = 1):
+        super().__init__()
+        self.trunk = layernorm_tanh_layer(obs_dim + z_dim + action_dim, hidden_dim)
+        # out_dim > 1: successor features psi_k (APS), whose values are psi_k . w (the caller's).
+        self.heads = TwinHead(hidden_dim, hidden_dim, out_dim, num_heads)
+        orthogonal_init_(self)
+
+    def forward(self, obs: torch.Tensor, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.heads(self.trunk(torch.cat([obs, z, action], dim=-1)))
