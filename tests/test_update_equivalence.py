@@ -720,7 +720,8 @@ def test_errors_of_the_computation_are_not_swallowed(monkeypatch):
 
 
 def test_perf_options_reach_the_cli_config_and_resume_rules():
-    from dvfb.cli import _pretrain_config, build_parser
+    from dvfb.cli import build_parser
+    from dvfb.cli.common import pretrain_config as _pretrain_config
     from dvfb.workflows.config import preset_config
     from dvfb.workflows.pretrain import _check_resume_config
 

@@ -1,0 +1,83 @@
+"""The ``dvfb`` command line, one module per command: tasks and agents (:mod:`~dvfb.cli.info`), pretrain,
+zeroshot, finetune, random-policy, demo, sweep, report, the analyses (analyze-value,
+analyze-exploration) and video.
+
+Every option of the typed run configuration is a flag (nested fields as ``--fb.hidden-dim``), shown
+with its default in ``--help``. Errors caused by input (unknown task, bad run directory, mismatched
+checkpoint, NaN loss) print one line and exit with status 2; nothing existing is overwritten unless
+``--overwrite`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from dvfb import __version__
+from dvfb.cli import analyze, demo, finetune, info, pretrain, random_policy, report, sweep, video, zeroshot
+from dvfb.cli.common import Formatter
+from dvfb.errors import DvfbError, RunInterrupted
+
+# The order of `dvfb --help`.
+COMMANDS = (info, pretrain, zeroshot, finetune, random_policy, demo, sweep, report, analyze, video)
+
+
+def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
+    """The parser; ``pretrain``'s config flags are those of ``agent`` (read from ``--agent`` first)."""
+    parser = argparse.ArgumentParser(prog="dvfb", description="Online unsupervised zero-shot RL: DVFB, FB and "
+                                     "baselines (`dvfb agents`).", formatter_class=Formatter)
+    parser.add_argument("--version", action="version", version=f"dvfb {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
+    # The entry point itself, for commands that run other dvfb commands in-process (sweeps' debug
+    # executor); handed down instead of imported, since the commands stand below this module.
+    parser.set_defaults(entry_point=main)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for command in COMMANDS:
+        command.register(sub, agent)
+    # Global flags are accepted after the sub-command too (`dvfb pretrain ... -v`).
+    for subparser in sub.choices.values():
+        subparser.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                               help="log progress messages")
+    return parser
+
+
+def _requested_agent(argv: list[str]) -> str:
+    """The value of ``pretrain --agent`` (which decides the config flags), before the full parse."""
+    from dvfb.agents import agent_names
+
+    if "pretrain" not in argv:
+        return "dvfb"
+    rest = argv[argv.index("pretrain") + 1:]
+    for i, token in enumerate(rest):
+        value = None
+        if token == "--agent" and i + 1 < len(rest):
+            value = rest[i + 1]
+        elif token.startswith("--agent="):
+            value = token.split("=", 1)[1]
+        if value is not None:
+            return value if value in agent_names() else "dvfb"  # argparse names a bad choice
+    return "dvfb"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(_requested_agent(argv))
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except RunInterrupted as exc:
+        print(f"dvfb {args.command}: {exc}", file=sys.stderr)
+        return 128 + exc.signum
+    except DvfbError as exc:
+        print(f"dvfb {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"dvfb {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,89 @@
+"""What the commands share: the help formatter, run-directory and goal parsing, the pre-training
+config from flags, and the ``--inference.*`` / ``--finetune.*`` flags of the registered protocols."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from dvfb.config import add_arguments, merge, overrides_from_args
+from dvfb.errors import ConfigError
+
+DEFAULT_PRESET = "small"
+
+
+class Formatter(argparse.RawDescriptionHelpFormatter):
+    pass
+
+
+def default_run_dir(config) -> Path:
+    return Path("runs") / f"{config.agent}_{config.domain}_{config.preset}_s{config.seed}"
+
+
+def parse_goal(text: str) -> np.ndarray:
+    path = Path(text)
+    if path.suffix == ".npy":
+        if not path.exists():
+            raise ConfigError(f"goal file {path} does not exist")
+        return np.load(path)
+    try:
+        return np.array([float(x) for x in text.split(",")], dtype=np.float32)
+    except ValueError as exc:
+        raise ConfigError(f"--goal must be a .npy file or comma-separated numbers, got {text!r}") from exc
+
+
+def pretrain_config(args: argparse.Namespace):
+    from dvfb.workflows.config import preset_config, run_config_class
+
+    base = preset_config(args.preset, args.agent)
+    return merge(base, overrides_from_args(args, run_config_class(args.agent)))
+
+
+def protocol_classes(kind: str) -> list[type]:
+    """The config classes of every registered zero-shot protocol (``inference``) or fine-tuner."""
+    from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS
+
+    registry = ZERO_SHOT_PROTOCOLS if kind == "inference" else FINETUNERS
+    classes: list[type] = []
+    for protocol in registry.values():
+        if protocol.config_cls not in classes:
+            classes.append(protocol.config_cls)
+    return classes
+
+
+def add_protocol_arguments(p: argparse.ArgumentParser, kind: str) -> None:
+    """``--inference.*`` or ``--finetune.*`` flags: the union of the families' fields, each once.
+
+    Which of them apply depends on the run's method; a flag its family lacks is an error naming
+    the family's config class when the run is loaded.
+    """
+    seen: set[str] = set()
+    for cls in protocol_classes(kind):
+        skip = tuple(f.name for f in dataclasses.fields(cls) if f.name in seen)
+        if len(skip) < len(dataclasses.fields(cls)):
+            group = p.add_argument_group(f"{kind} options ({cls.__name__})")
+            add_arguments(group, cls, prefix=f"{kind}.", skip=skip)
+        seen.update(f.name for f in dataclasses.fields(cls))
+
+
+def protocol_overrides(args: argparse.Namespace, kind: str) -> dict:
+    out: dict = {}
+    for cls in protocol_classes(kind):
+        out.update(overrides_from_args(args, cls, prefix=f"{kind}."))
+    return out
+
+
+def add_snapshot_and_seed(p: argparse.ArgumentParser, seed_what: str = "seed") -> None:
+    """--snapshot and --seed of the commands that load a pre-trained run's agent."""
+    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
+    p.add_argument("--seed", type=int, default=None, help=f"{seed_what} (default: the run's seed)")
+
+
+def progress_flag(p: argparse.ArgumentParser) -> None:
+    """--progress / --no-progress of the commands with a progress bar."""
+    p.add_argument("--progress", dest="progress", action="store_true", default=None,
+                   help="always show the progress bar (default: only on a terminal)")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="never show it")

@@ -1,0 +1,43 @@
+"""``dvfb finetune``: fine-tuning by the method's registered fine-tuner."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, progress_flag, protocol_overrides
+
+def cmd_finetune(args: argparse.Namespace) -> int:
+    from dvfb.workflows.finetune import finetune
+
+    run = finetune(args.run, args.task, snapshot=args.snapshot, seed=args.seed, name=args.name,
+                   inference=protocol_overrides(args, "inference"),
+                   finetune=protocol_overrides(args, "finetune"),
+                   resume=args.resume, overwrite=args.overwrite, progress=args.progress)
+
+    summary = json.loads((run.path / "finetune_summary.json").read_text())
+    print(f"fine-tuning finished: {run.path}")
+    print(f"zero-shot return {summary['zero_shot_return']:.1f} -> after {summary['frames']} frames "
+          f"{summary['final_return']:.1f}")
+    if "final_success_rate" in summary:
+        print(f"zero-shot success rate {summary['zero_shot_success_rate']:.2f} -> after {summary['frames']} frames "
+              f"{summary['final_success_rate']:.2f}")
+    return 0
+
+
+def register(sub, agent: str) -> None:
+    p = sub.add_parser("finetune", help="fine-tune a pre-trained run on a task", formatter_class=Formatter,
+                       description="Fine-tuning by the method family's protocol: dual-value (a fresh task critic, "
+                                   "reward mapping and the skill value) for DVFB/FB, URLB's (pre-trained actor, "
+                                   "fresh critic with the pre-trained trunk, extrinsic n-step reward, the "
+                                   "selected skill) for the DDPG baselines. Defaults come from the run's config.")
+    p.add_argument("run", help="pre-training run directory")
+    p.add_argument("--task", required=True, help="task name of the run's domain")
+    add_snapshot_and_seed(p)
+    p.add_argument("--name", default=None, help="name of the fine-tuning run under RUN/finetune/ (default: the task)")
+    p.add_argument("--resume", action="store_true", help="continue from the latest fine-tuning checkpoint")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing fine-tuning run")
+    progress_flag(p)
+    add_protocol_arguments(p, "inference")
+    add_protocol_arguments(p, "finetune")
+    p.set_defaults(func=cmd_finetune)

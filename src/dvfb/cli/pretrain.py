@@ -1,0 +1,40 @@
+"""``dvfb pretrain``: reward-free pre-training."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from dvfb.cli.common import DEFAULT_PRESET, Formatter, default_run_dir, pretrain_config, progress_flag
+from dvfb.config import add_arguments
+
+def cmd_pretrain(args: argparse.Namespace) -> int:
+    from dvfb.workflows.pretrain import pretrain
+
+    config = pretrain_config(args)
+    run_dir = Path(args.run_dir) if args.run_dir else default_run_dir(config)
+    run = pretrain(config, run_dir, resume=args.resume, overwrite=args.overwrite,
+                   progress=args.progress, command=sys.argv)
+    print(f"pre-training finished: {run.path}")
+    return 0
+
+
+def register(sub, agent: str) -> None:
+    from dvfb.agents import agent_names
+    from dvfb.workflows.config import PRESETS, preset_config, run_config_class
+
+    p = sub.add_parser(
+        "pretrain", help="reward-free pre-training", formatter_class=Formatter,
+        description="Reward-free online pre-training (docs/methods.md). Defaults shown are those of the "
+                    f"{DEFAULT_PRESET!r} preset for --agent {agent}; --preset paper gives the spec's values "
+                    "(hidden 1024, batch 1024, 2M frames), --preset code the authors' constants. The config "
+                    "sections depend on the method: `dvfb pretrain --agent NAME --help` shows its flags.")
+    p.add_argument("--preset", default=DEFAULT_PRESET, choices=PRESETS, help="base configuration (default: %(default)s)")
+    p.add_argument("--run-dir", default=None, help="run directory (default: runs/<agent>_<domain>_<preset>_s<seed>)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --run-dir from its latest checkpoint")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
+    progress_flag(p)
+    p.add_argument("--agent", default=agent, choices=agent_names(), help="method (default: %(default)s)")
+    add_arguments(p, run_config_class(agent), defaults=preset_config(DEFAULT_PRESET, agent), skip=("preset", "agent"))
+    p.set_defaults(func=cmd_pretrain)

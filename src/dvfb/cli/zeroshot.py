@@ -1,0 +1,52 @@
+"""``dvfb zeroshot``: the skill of a task by the run's zero-shot protocol, and its evaluation."""
+
+from __future__ import annotations
+
+import argparse
+
+from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, parse_goal, progress_flag, protocol_overrides
+
+def cmd_zeroshot(args: argparse.Namespace) -> int:
+    from dvfb import envs
+    from dvfb.workflows.snapshots import open_pretrained_run
+    from dvfb.workflows.zeroshot import zeroshot
+
+    _run, config = open_pretrained_run(args.run)
+    tasks = envs.tasks_of_domain(config.domain) if args.task == ["all"] else args.task
+    inference = protocol_overrides(args, "inference")
+    goal = parse_goal(args.goal) if args.goal else None
+    rows = []
+    for task in tasks:
+        result = zeroshot(args.run, task, snapshot=args.snapshot, inference=inference, seed=args.seed,
+                          skill_source=args.skill_source, reward_fn=args.reward_fn, goal=goal,
+                          overwrite=args.overwrite, progress=args.progress)
+        rows.append((task, result["mean_return"], result["std_return"], result["eval_episodes"],
+                     result.get("success_rate")))
+    with_success = any(row[4] is not None for row in rows)
+    print(f"{'task':<36} {'return':>9} {'std':>8} {'episodes':>9}" + (f" {'success':>8}" if with_success else ""))
+    for task, mean, std, n, success in rows:
+        print(f"{task:<36} {mean:9.1f} {std:8.1f} {n:9d}" + (f" {success:8.2f}" if success is not None else ""))
+    return 0
+
+
+def register(sub, agent: str) -> None:
+    p = sub.add_parser("zeroshot", help="the skill of a task by the method's zero-shot protocol, evaluated", formatter_class=Formatter,
+                       description="Zero-shot by the method's registered protocol (docs/methods.md, \"Protocols\"): "
+                                   "the FB family infers z_r from reward-labelled steps (or a reward function or "
+                                   "a goal), the skill-discovery methods select the best prior skill over the "
+                                   "same steps, methods without skills use their one policy; then mean-action "
+                                   "evaluation episodes. Defaults come from the run's config.")
+    p.add_argument("run", help="pre-training run directory")
+    p.add_argument("--task", nargs="+", required=True, help="task name(s) of the run's domain, or 'all'")
+    add_snapshot_and_seed(p, "task seed")
+    p.add_argument("--skill-source", "--z-source", dest="skill_source", default="rewards",
+                   choices=("rewards", "reward_fn", "goal"),
+                   help="where the task's skill comes from: interaction with the task (every method), a reward "
+                        "function over the run's replay states, or a goal (methods that infer skills); "
+                        "--z-source is the old name (default: %(default)s)")
+    p.add_argument("--reward-fn", default=None, help="module:function or file.py:function mapping next_obs (N, O) to rewards")
+    p.add_argument("--goal", default=None, help="goal observation: a .npy file or comma-separated numbers")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing result file")
+    progress_flag(p)
+    add_protocol_arguments(p, "inference")
+    p.set_defaults(func=cmd_zeroshot)
