@@ -1,0 +1,37 @@
+"""Run directories, metrics, results and checkpoints.
+
+Every run (pre-training, fine-tuning, zero-shot evaluation, ...) owns one directory::
+
+    <run>/
+      config.json              the full resolved typed config (dvfb.config.save_json)
+      meta.json                config class, dvfb version, creation time, command line
+      metrics/<prefix>.jsonl   one JSON object per MetricsLogger.log call: {"step": 1000, "x": 0.5}
+      tb/                      TensorBoard event files, scalar tags "<prefix>/<name>"
+      checkpoints/<name>.pt    resume checkpoints (torch.save of a state dict)
+      checkpoints/latest       text file holding the file name of the current resume checkpoint
+      snapshots/<name>.pt      checkpoints kept for good (e.g. the model after N steps)
+      results/                 machine-readable results, written with write_json_atomic
+
+Writes that a crash must not leave half done (checkpoints, the ``latest`` pointer, results, meta)
+go to a temporary file in the same directory, are flushed and fsync'ed, and then renamed over the
+target with ``os.replace``, which is atomic on POSIX and Windows: a reader sees the old file or the
+new one, never a mixture. ``save_checkpoint`` moves ``latest`` only after the new checkpoint is
+complete, and deletes the checkpoint it replaced only after that, so at every instant ``latest``
+names a complete file. One process writes a run directory at a time.
+
+Checkpoints are read with ``torch.load(weights_only=True)`` by default, so a state should hold
+only tensors, numbers, strings, ``None`` and lists/tuples/dicts of these (``torch.get_rng_state()``
+and ``numpy.random.Generator.bit_generator.state`` qualify; legacy ``np.random.get_state()``
+does not).
+
+The rooms: :mod:`~dvfb.runs.files` (atomic writes, JSON), :mod:`~dvfb.runs.directory` (the run
+directory and its lock), :mod:`~dvfb.runs.metrics`, :mod:`~dvfb.runs.checkpoints`. Every public
+name is importable from ``dvfb.runs``.
+"""
+
+from dvfb.runs.checkpoints import (  # noqa: F401
+    CHECKPOINT_SUFFIX, LATEST_POINTER, latest_checkpoint, list_snapshots, load_checkpoint, load_snapshot,
+    remove_orphaned_checkpoints, save_checkpoint, save_snapshot)
+from dvfb.runs.directory import CONFIG_FILE, LOCK_FILE, META_FILE, RunDir, RunLock, check_writable  # noqa: F401
+from dvfb.runs.files import read_json, write_json_atomic  # noqa: F401
+from dvfb.runs.metrics import MetricsLogger, read_metrics  # noqa: F401

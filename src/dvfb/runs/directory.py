@@ -1,0 +1,244 @@
+"""The run directory and its lock (docs in :mod:`dvfb.runs`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import platform
+import re
+import shutil
+import uuid
+from collections.abc import Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import IO, Any, TypeVar
+
+import torch
+
+from dvfb import __version__
+from dvfb.config import load_json, save_json, to_dict
+from dvfb.errors import ConfigError, RunDirError
+from dvfb.runs.files import _TEMP_MARK, _atomic_write, read_json, write_json_atomic
+
+
+T = TypeVar("T")
+
+CONFIG_FILE = "config.json"
+META_FILE = "meta.json"
+LOCK_FILE = ".lock"
+# Checkpoint, snapshot and metric names become file names: keep them to one safe path component.
+_NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]*")
+
+
+class RunDir:
+    """One run's directory (layout in the module docstring). Make it with create or open."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+
+    def __repr__(self) -> str:
+        return f"RunDir({str(self.path)!r})"
+
+    def __fspath__(self) -> str:
+        return str(self.path)
+
+    @property
+    def config_path(self) -> Path:
+        return self.path / CONFIG_FILE
+
+    @property
+    def meta_path(self) -> Path:
+        return self.path / META_FILE
+
+    @property
+    def metrics_dir(self) -> Path:
+        return self.path / "metrics"
+
+    @property
+    def tb_dir(self) -> Path:
+        return self.path / "tb"
+
+    @property
+    def checkpoints_dir(self) -> Path:
+        return self.path / "checkpoints"
+
+    @property
+    def snapshots_dir(self) -> Path:
+        return self.path / "snapshots"
+
+    @property
+    def results_dir(self) -> Path:
+        return self.path / "results"
+
+    @classmethod
+    def create(cls, path: str | os.PathLike, config: Any, overwrite: bool = False,
+               command: Sequence[str] | None = None) -> RunDir:
+        """Make a new run directory holding ``config.json`` and ``meta.json``.
+
+        An existing non-empty directory is an error unless ``overwrite``; then its contents are
+        removed first, but only if it is a run directory (has config.json or meta.json), so that a
+        mistyped path cannot wipe unrelated files. ``command`` is the command line to record
+        (e.g. ``sys.argv``).
+        """
+        if not dataclasses.is_dataclass(config) or isinstance(config, type):
+            raise TypeError(f"config must be a dataclass instance, got {type(config).__name__}")
+        path = Path(path)
+        if path.exists() or path.is_symlink():
+            if not path.is_dir():
+                raise RunDirError(f"{path} exists and is not a directory; choose another run name")
+            if any(child.name != LOCK_FILE for child in path.iterdir()):
+                if not overwrite:
+                    raise RunDirError(
+                        f"run directory {path} already exists and is not empty; pass --overwrite "
+                        "to replace it, or choose another run name"
+                    )
+                if not ((path / CONFIG_FILE).exists() or (path / META_FILE).exists()):
+                    raise RunDirError(
+                        f"refusing to overwrite {path}: it does not look like a dvfb run directory "
+                        f"(no {CONFIG_FILE} or {META_FILE}); remove it yourself or choose another "
+                        "run name"
+                    )
+                try:
+                    # Everything but the lock file, which the overwriting process holds.
+                    for child in path.iterdir():
+                        if child.name == LOCK_FILE:
+                            continue
+                        if child.is_dir() and not child.is_symlink():
+                            shutil.rmtree(child)
+                        else:
+                            child.unlink()
+                except OSError as exc:
+                    raise RunDirError(f"cannot remove {path} to overwrite it: {exc}") from exc
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+            save_json(config, path / CONFIG_FILE)
+        except OSError as exc:
+            raise RunDirError(f"cannot create run directory {path}: {exc}") from exc
+        meta = {
+            "config_class": type(config).__qualname__,
+            "config_module": type(config).__module__,
+            "dvfb_version": __version__,
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "command": list(command) if command is not None else None,
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+        }
+        write_json_atomic(path / META_FILE, meta)
+        return cls(path)
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> RunDir:
+        """Open an existing run; RunDirError when it is missing or its config.json is unusable."""
+        path = Path(path)
+        if not path.exists():
+            raise RunDirError(f"run directory {path} does not exist")
+        if not path.is_dir():
+            raise RunDirError(f"{path} is not a directory, so not a run directory")
+        config_path = path / CONFIG_FILE
+        if not config_path.is_file():
+            raise RunDirError(f"{path} is not a dvfb run directory: it has no {CONFIG_FILE}")
+        data = read_json(config_path, RunDirError)
+        if not isinstance(data, dict):
+            raise RunDirError(f"{config_path} is corrupt: expected a JSON object")
+        return cls(path)
+
+    def load_config(self, cls: type[T]) -> T:
+        """The run's config as ``cls``; unknown keys or wrong types raise ConfigError."""
+        try:
+            return load_json(cls, self.config_path)
+        except ConfigError as exc:
+            if str(self.config_path) in str(exc):
+                raise
+            raise ConfigError(f"{self.config_path}: {exc}") from exc
+
+    def save_config(self, config: Any) -> None:
+        """Replace ``config.json`` atomically (a resumed run may extend its frame budget)."""
+        text = json.dumps(to_dict(config), indent=2, sort_keys=True) + "\n"
+        _atomic_write(self.config_path, lambda file: file.write(text.encode("utf-8")))
+
+    def read_meta(self) -> dict:
+        """The contents of meta.json."""
+        return read_json(self.meta_path, RunDirError)
+
+
+class RunLock:
+    """One writer per run directory: an exclusive OS lock (``flock``) on ``<run>/.lock``.
+
+    The lock file holds the holder's process id, which the refusal names. The OS releases the
+    lock when its process dies, so a stale lock file of a dead process is simply taken over.
+    Entering creates the run directory if needed (after the caller has validated its inputs).
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self._file: IO[str] | None = None
+        self.created_directory = False
+
+    def __enter__(self) -> RunLock:
+        import fcntl
+
+        try:
+            if not self.path.exists():
+                self.path.mkdir(parents=True)
+                self.created_directory = True
+            file = open(self.path / LOCK_FILE, "a+", encoding="utf-8")
+        except OSError as exc:
+            raise RunDirError(f"cannot use run directory {self.path}: {exc.strerror or exc}") from exc
+        try:
+            fcntl.flock(file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            file.seek(0)
+            holder = file.read().strip() or "unknown"
+            file.close()
+            raise RunDirError(f"run directory {self.path} is in use by process {holder}; wait for it to "
+                              "finish or stop it (kill -TERM checkpoints a pre-training run)") from None
+        file.seek(0)
+        file.truncate()
+        file.write(f"{os.getpid()}\n")
+        file.flush()
+        self._file = file
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        if self._file is not None:
+            self._file.close()  # closing releases the flock
+            self._file = None
+
+    def remove_if_created(self) -> None:
+        """Undo the directory this lock created (a run that failed before writing anything)."""
+        if self.created_directory and {p.name for p in self.path.iterdir()} <= {LOCK_FILE}:
+            shutil.rmtree(self.path, ignore_errors=True)
+
+
+def check_writable(directory: str | os.PathLike) -> None:
+    """Fail early, with one line, if files cannot be written in ``directory`` (created if needed):
+    a read-only file system, a permission problem or a full disk."""
+    directory = Path(directory)
+    probe = directory / f".write-probe{_TEMP_MARK}{uuid.uuid4().hex[:8]}"
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        with open(probe, "wb") as file:
+            file.write(b"x")
+            file.flush()
+            os.fsync(file.fileno())
+    except OSError as exc:
+        raise RunDirError(f"cannot write in {directory}: {exc.strerror or exc}") from exc
+    finally:
+        try:
+            probe.unlink(missing_ok=True)
+        except OSError:
+            pass  # it was never created (read-only, full)
+
+
+def _as_run_dir(run: RunDir | str | os.PathLike) -> RunDir:
+    return run if isinstance(run, RunDir) else RunDir(run)
+
+
+def _check_name(name: str, what: str) -> str:
+    if not isinstance(name, str) or not _NAME_PATTERN.fullmatch(name) or _TEMP_MARK in name:
+        raise ValueError(
+            f"{what} name {name!r} must be letters, digits, '_', '-' or '.', starting with a "
+            "letter or digit"
+        )
+    return name
