@@ -29,10 +29,9 @@ import torch
 from torch import nn
 
 from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGCore, IntrinsicDDPGAgent
-from dvfb.execution import requires_grad_disabled
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.config import param
-from dvfb.nets import TwinHead, call_network, layernorm_tanh_layer, orthogonal_init_, soft_update_, training_action
+from dvfb.nets import TwinHead, call_network, layernorm_tanh_layer, orthogonal_init_, training_action
 from dvfb.replay import Batch
 from dvfb.rewards.cesd import CeSDReward
 from dvfb.rewards.contrastive import CICConfig
@@ -122,30 +121,11 @@ class CeSDCore(DDPGCore):
         q = self.critic_values(self.critic, obs, skill, action, run).amin(0).squeeze(-1)  # (K, N)
         return -(skill.T * q).mean()
 
-    def train_step(self, batch: Batch, reward: torch.Tensor, metrics: dict, run=call_network,
-                   mask: torch.Tensor | None = None) -> None:
-        """Critic step, then actor step (no target EMA: :meth:`update_target`)."""
-        skill = batch.z
-        critic_loss = self.critic_loss(batch, skill, reward, run, mask)
-        self.critic_optimizer.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        self.critic_optimizer.step()
-        # As the base core: the actor's graph reaches the critic only through the action.
-        with requires_grad_disabled(list(self.critic.parameters())):
-            actor_loss = self.actor_loss(batch.obs, skill, run)
-        self.actor_optimizer.zero_grad(set_to_none=True)
-        actor_loss.backward(inputs=list(self.actor.parameters()))
-        self.actor_optimizer.step()
-        metrics.update(critic_loss=critic_loss.detach(), actor_loss=actor_loss.detach(), reward=reward.mean())
-
-    def update_target(self) -> None:
-        soft_update_(self.critic_target, self.critic, self.config.tau)
-
     def update(self, batch: Batch, reward: torch.Tensor, metrics: dict, run=call_network,
                mask: torch.Tensor | None = None) -> None:
         """Critic step, actor step, target EMA. Without ``mask`` (the fine-tuner's call) every
         ensemble member regresses the target on every state."""
-        self.train_step(batch, reward, metrics, run, mask)
+        self.train_step(batch, reward, metrics, run, mask=mask)
         self.update_target()
 
 
@@ -176,7 +156,7 @@ class CeSDAgent(IntrinsicDDPGAgent):
         metrics.update(info)
         heads = torch.arange(self.skill.dim, device=cluster.device)
         mask = heads.unsqueeze(1) == cluster.unsqueeze(0)  # (K, N): state i regresses head k = its cluster
-        self.core.train_step(batch, reward, metrics, run, mask)
+        self.core.train_step(batch, reward, metrics, run, mask=mask)
         # g is unchanged since the reward (the critic and actor steps do not touch it): reuse g(s_{t+n}).
         metrics.update(self.intrinsic.update_prototypes(batch, run, next_rep))
         self.core.update_target()

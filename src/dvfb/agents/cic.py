@@ -4,22 +4,10 @@ on a 64-d skill from Uniform[0, 1]^64, trained on the APT particle entropy of th
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
-from dvfb.config import param
-from dvfb.rewards.contrastive import CICConfig, CICReward
+from dvfb.rewards.contrastive import CICReward, CICSkillConfig
 from dvfb.skills import SkillSpec
-
-
-@dataclass
-class CICAgentConfig(CICConfig):
-    """CIC's skill and its contrastive module (the module's settings are DVFB(CIC)'s too)."""
-
-    skill_dim: int = param(64, "Width of the skill, drawn from Uniform[0, 1]^d.", at_least=1)
-    skill_every: int = param(50, "Resample the rollout skill when the step counter is a multiple of this (and at "
-                             "every episode start).", at_least=1)
 
 
 class CICAgent(IntrinsicDDPGAgent):
@@ -37,5 +25,5 @@ class CICAgent(IntrinsicDDPGAgent):
 register(AgentSpec(
     name="cic", agent_cls=CICAgent, family="skill_discovery",
     summary="CIC: DDPG on skills in [0,1]^64, APT entropy of a contrastively learnt encoder (Laskin et al.)",
-    sections={"ddpg": DDPGConfig, "cic": CICAgentConfig}, zero_shot="skill_selection", finetuner="urlb",
+    sections={"ddpg": DDPGConfig, "cic": CICSkillConfig}, zero_shot="skill_selection", finetuner="urlb",
     presets={"small": {"ddpg": DDPG_SMALL, "cic": {"hidden_dim": 256}}}))

@@ -4,21 +4,19 @@ term whose weight depends on the skill. The DMC settings are our decisions (no p
 
 from __future__ import annotations
 
-from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, IntrinsicDDPGAgent
+from dvfb.agents.cic import CICAgent
+from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.rewards.comsd import ComSDConfig, ComSDReward
-from dvfb.skills import SkillSpec
 
 __all__ = ["ComSDAgent", "ComSDConfig"]
 
 
-class ComSDAgent(IntrinsicDDPGAgent):
+class ComSDAgent(CICAgent):
+    """CIC's skill and update; only the reward differs."""
+
     name = "comsd"
     reward_section = "comsd"
-
-    def declare_skill(self) -> SkillSpec:
-        c = self.reward_config
-        return SkillSpec("box", c.skill_dim, every=c.skill_every, low=0.0, high=1.0)
 
     def build_reward(self) -> ComSDReward:
         return ComSDReward(self.obs_dim, self.skill.dim, self.reward_config)

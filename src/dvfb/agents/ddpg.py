@@ -95,8 +95,17 @@ class DDPGCore(nn.Module):
 
     def update(self, batch: Batch, reward: torch.Tensor, metrics: dict, run=call_network) -> None:
         """Critic step, actor step, target EMA (URLB's order). ``reward`` is ``(N, 1)``."""
+        self.train_step(batch, reward, metrics, run)
+        self.update_target()
+
+    def update_target(self) -> None:
+        soft_update_(self.critic_target, self.critic, self.config.tau)
+
+    def train_step(self, batch: Batch, reward: torch.Tensor, metrics: dict, run=call_network,
+                   **critic_options) -> None:
+        """Critic step, then actor step; ``critic_options`` go to :meth:`critic_loss` (CeSD's mask)."""
         skill = batch.z if batch.z is not None else no_skill_like(batch.obs)
-        critic_loss = self.critic_loss(batch, skill, reward, run)
+        critic_loss = self.critic_loss(batch, skill, reward, run, **critic_options)
         self.critic_optimizer.zero_grad(set_to_none=True)
         critic_loss.backward()
         self.critic_optimizer.step()
@@ -107,7 +116,6 @@ class DDPGCore(nn.Module):
         self.actor_optimizer.zero_grad(set_to_none=True)
         actor_loss.backward(inputs=list(self.actor.parameters()))
         self.actor_optimizer.step()
-        soft_update_(self.critic_target, self.critic, self.config.tau)
         metrics.update(critic_loss=critic_loss.detach(), actor_loss=actor_loss.detach(), reward=reward.mean())
 
 

@@ -29,18 +29,15 @@ from dvfb.errors import ConfigError
 from dvfb.nets import call_network
 from dvfb.replay import Batch
 from dvfb.rewards.base import Runner
-from dvfb.rewards.contrastive import CICConfig, CICReward
+from dvfb.rewards.contrastive import CICReward, CICSkillConfig
 
 WEIGHT_MAPPINGS = ("first", "mean")
 
 
 @dataclass
-class ComSDConfig(CICConfig):
-    """CIC's module and APT reward (inherited fields), ComSD's skill and the weight of its
-    diversity term. Skill and weight settings are our choices (no public DMC code)."""
-
-    skill_dim: int = param(64, "Width of the continuous skill, uniform in [0, 1]^d (CIC's prior).", at_least=1)
-    skill_every: int = param(50, "Resampling period of the rollout skill, in environment steps.", at_least=1)
+class ComSDConfig(CICSkillConfig):
+    """CIC's skill, module and APT reward (inherited fields; CIC's skill is our choice, as no DMC code
+    of ComSD is public) and the weight of ComSD's diversity term."""
     weight_low: float = param(0.5, "Weight beta of the diversity reward at the low end of the skill mapping.")
     weight_high: float = param(1.0, "Weight beta of the diversity reward at the high end of the skill mapping.")
     weight_mapping: str = param("first", "How a skill z in [0,1]^d sets beta = low + (high - low) * m(z): m = z_1, "

@@ -134,6 +134,16 @@ class CICConfig:
     lr: float = param(1e-4, "Adam learning rate of the contrastive module.", above=0)
 
 
+@dataclass
+class CICSkillConfig(CICConfig):
+    """CIC's skill and its contrastive module (the CIC and ComSD agents' section; DVFB(CIC) pairs the
+    module with B's labels instead and has no skill settings)."""
+
+    skill_dim: int = param(64, "Width of the skill, drawn from Uniform[0, 1]^d.", at_least=1)
+    skill_every: int = param(50, "Resample the rollout skill when the step counter is a multiple of this (and at "
+                             "every episode start).", at_least=1)
+
+
 class CICReward(IntrinsicReward):
     """CIC (docs/methods.md, "CIC"): an NCE step, then ``log(1 + mean kNN distance)`` of g(s') within
     the batch, divided by the running variance of the distances (APT-CIC). The contrastive term
