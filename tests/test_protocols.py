@@ -212,3 +212,43 @@ def test_a_resume_checkpoint_of_the_old_format_is_refused_in_one_line(tmp_path):
 
     with pytest.raises(CheckpointError, match="format 1.*format 2"):
         pretrain(dataclasses.replace(config, frames=2000), tmp_path / "run", resume=True, progress=False)
+
+
+@pytest.mark.parametrize("skill_mode", ["selected", "resample"])
+def test_skill_discovery_fine_tuning_resumes_as_if_uninterrupted(skill_mode, tmp_path):
+    """Selection, then URLB fine-tuning with a fixed or resampled skill, interrupted at an episode
+    end and resumed: the curve, the skill and every parameter equal the uninterrupted run's."""
+    from dvfb.runs import load_checkpoint
+    from dvfb.workflows.finetune import finetune
+    from dvfb.workflows.pretrain import pretrain
+
+    run = tmp_path / "diayn"
+    pretrain(tiny_run_config("diayn"), run, progress=False)
+    inference = {"steps": 1000, "eval_episodes": 1}
+    options = {"seed_frames": 400, "eval_every": 1000, "eval_episodes": 1, "checkpoint_every": 1000,
+               "update_every": 4, "skill": skill_mode}
+    finetune(run, MAZE, name="full", inference=inference, finetune={**options, "frames": 2000}, progress=False)
+    finetune(run, MAZE, name="split", inference=inference, finetune={**options, "frames": 1000}, progress=False)
+    finetune(run, MAZE, name="split", inference=inference, finetune={**options, "frames": 2000}, resume=True,
+             progress=False)
+    import json
+
+    full = json.loads((run / "finetune" / "full" / "curve.json").read_text())
+    split = json.loads((run / "finetune" / "split" / "curve.json").read_text())
+    assert [p["frames"] for p in split["curve"]] == [0, 1000, 2000] and full["curve"] == split["curve"]
+    assert full["inference_info"]["protocol"] == "skill_selection" and len(full["inference_info"]["candidates"]) == 1
+    a = load_checkpoint(run / "finetune" / "full")
+    b = load_checkpoint(run / "finetune" / "split")
+    assert torch.equal(a["generator"], b["generator"]) and torch.equal(a["finetuner"]["skill"], b["finetuner"]["skill"])
+    for key, value in a["finetuner"]["core"].items():
+        assert torch.equal(value, b["finetuner"]["core"][key]), key
+    replay_a, replay_b = a["replay"], b["replay"]
+    width = agent_skill_width("diayn")
+    skills_a, skills_b = replay_a["rows"][:, -width:], replay_b["rows"][:, -width:]
+    assert torch.equal(skills_a, skills_b)
+    distinct = {tuple(row.tolist()) for row in skills_a.reshape(-1, skills_a.shape[-1]) if row.sum() == 1}
+    assert (len(distinct) == 1) == (skill_mode == "selected")  # resampled every 50 steps: several skills
+
+
+def agent_skill_width(agent_name: str) -> int:
+    return make_agent(agent_name, 4, 2, tiny_run_config(agent_name), "cpu").skill_dim
