@@ -289,3 +289,40 @@ def test_progress_lines_without_a_terminal(tmp_path):
     assert progress and "frames/s, ETA" in progress[-1] and "1500/1500 frames (100%)" in progress[-1]
     assert any("memory estimate: replay" in line for line in lines)
     assert json.loads((run / "pretrain_summary.json").read_text())["frames"] == 1500
+
+
+@pytest.mark.parametrize("name", ["..", "../../x", "a/b", ".hidden"])
+def test_finetune_name_outside_the_finetune_folder_is_refused_and_nothing_is_deleted(finished_run, name, capsys):
+    before = sorted(p.relative_to(finished_run) for p in finished_run.rglob("*"))
+    code = main(["finetune", str(finished_run), "--task", "point_mass_maze_reach_top_left", "--name", name,
+                 "--overwrite", "--no-progress"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--name" in err[0] and "plain name" in err[0]
+    assert sorted(p.relative_to(finished_run) for p in finished_run.rglob("*")) == before
+    assert not (finished_run.parent / "x").exists()
+
+
+def test_random_policy_with_no_episodes_is_refused(tmp_path, capsys):
+    out = tmp_path / "random.json"
+    assert main(["random-policy", "--domain", "point_mass_maze", "--episodes", "0", "--output", str(out)]) == 2
+    assert "--episodes must be at least 1" in capsys.readouterr().err and not out.exists()
+
+
+def test_non_finite_rewards_or_goals_never_give_a_nan_skill(finished_run):
+    import numpy as np
+
+    import dvfb
+    from dvfb.errors import ConfigError
+
+    model = dvfb.load(finished_run)
+    obs = np.zeros((8, 4), np.float32)
+    rewards = np.ones(8, np.float32)
+    rewards[3] = np.nan
+    with pytest.raises(ConfigError, match="non-finite"):
+        model.infer_z(obs, obs, rewards)
+    with pytest.raises(ConfigError, match="non-finite"):
+        model.infer_z(goal=np.array([0.1, np.inf, 0.0, 0.0]))
+    with pytest.raises(ConfigError, match="non-finite"):
+        model.infer_z(reward_fn=lambda next_obs: np.full(next_obs.shape[0], np.nan))
+    assert np.isfinite(model.infer_z(obs, obs, np.ones(8, np.float32)).numpy()).all()

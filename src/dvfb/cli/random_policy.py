@@ -7,6 +7,7 @@ from pathlib import Path
 
 from dvfb.errors import ConfigError
 
+
 def cmd_random_policy(args: argparse.Namespace) -> int:
     """Returns of a uniform-random policy on every task of a domain (the table's floor)."""
     from dvfb import envs
@@ -14,6 +15,8 @@ def cmd_random_policy(args: argparse.Namespace) -> int:
     from dvfb.workflows.zeroshot import random_policy_evaluation
 
     envs.check_domain(args.domain)
+    if args.episodes < 1:
+        raise ConfigError(f"--episodes must be at least 1, got {args.episodes}")
     output = Path(args.output) if args.output else None
     if output is not None and output.exists() and not args.overwrite:
         raise ConfigError(f"{output} exists; pass --overwrite to replace it")

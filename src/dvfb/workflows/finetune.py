@@ -92,6 +92,14 @@ def load_finetune_run_config(run: RunDir) -> FinetuneRunConfig:
         raise ConfigError(f"{run.config_path}: {exc}") from exc
 
 
+def check_run_name(name: str) -> str:
+    """A fine-tuning run's name is one path component under ``RUN/finetune/``: never ``..``, a
+    path or a hidden name, which would write (or, with --overwrite, delete) outside it."""
+    if not name or name in (".", "..") or "/" in name or "\\" in name or name.startswith("."):
+        raise ConfigError(f"--name {name!r} must be a plain name (one path component under RUN/finetune/)")
+    return name
+
+
 def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, inference: dict | None = None,
              finetune: dict | None = None, seed: int | None = None, name: str | None = None,
              resume: bool = False, overwrite: bool = False, progress: bool | None = None,
@@ -113,7 +121,7 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
         seed=config.seed if seed is None else seed, device=str(agent.device),
         inference=merge(config.inference, inference or {}, "inference."),
         finetune=merge(config.finetune, finetune or {}, "finetune."))
-    path = run.path / "finetune" / (name or task)
+    path = run.path / "finetune" / check_run_name(name or task)
     if resume:
         RunDir.open(path)  # names what is missing before anything else happens
     else:
