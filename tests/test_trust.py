@@ -326,3 +326,17 @@ def test_non_finite_rewards_or_goals_never_give_a_nan_skill(finished_run):
     with pytest.raises(ConfigError, match="non-finite"):
         model.infer_z(reward_fn=lambda next_obs: np.full(next_obs.shape[0], np.nan))
     assert np.isfinite(model.infer_z(obs, obs, np.ones(8, np.float32)).numpy()).all()
+
+
+def test_a_pointer_to_a_missing_checkpoint_deletes_nothing_on_resume(finished_run, tmp_path, capsys):
+    import shutil
+
+    run = tmp_path / "copy"
+    shutil.copytree(finished_run, run)
+    checkpoints = run / "checkpoints"
+    kept = sorted(p.name for p in checkpoints.glob("*.pt"))
+    assert kept
+    (checkpoints / "latest").write_text("resume_999999.pt")
+    assert main(pretrain_argv(run, 2000, "--resume")) == 2
+    assert "resume_999999" in capsys.readouterr().err
+    assert sorted(p.name for p in checkpoints.glob("*.pt")) == kept  # the good checkpoint survives

@@ -31,8 +31,8 @@ def remove_orphaned_checkpoints(run: RunDir | str | os.PathLike) -> list[Path]:
         current = _read_pointer(checkpoints_dir)
     except CheckpointError:
         return []  # nothing is deleted on the word of a corrupt pointer
-    if current is None:
-        return []
+    if current is None or not (checkpoints_dir / current).is_file():
+        return []  # a pointer to a missing file: the others may be all that is left
     removed = [p for p in checkpoints_dir.glob(f"*{CHECKPOINT_SUFFIX}") if p.name != current]
     for path in removed:
         path.unlink(missing_ok=True)
