@@ -340,3 +340,16 @@ def test_a_pointer_to_a_missing_checkpoint_deletes_nothing_on_resume(finished_ru
     assert main(pretrain_argv(run, 2000, "--resume")) == 2
     assert "resume_999999" in capsys.readouterr().err
     assert sorted(p.name for p in checkpoints.glob("*.pt")) == kept  # the good checkpoint survives
+
+
+def test_a_fine_tuning_skill_option_the_method_cannot_take_is_refused_before_any_work(tmp_path, capsys):
+    run = tmp_path / "diayn"
+    argv = ["pretrain", "--agent", "diayn", *MAZE, "--frames", "1000", "--run-dir", str(run), "--no-progress",
+            "--seed-frames", "500", "--update-every", "4", "--ddpg.hidden-dim", "32", "--ddpg.batch-size", "32",
+            "--diayn.hidden-dim", "32", "--torch-threads", "1"]
+    assert main(argv) == 0
+    for skill, message in (("prior_mean", "needs a box prior"), ("regressed", "no task regression")):
+        code = main(["finetune", str(run), "--task", "point_mass_maze_reach_top_left", "--finetune.skill", skill,
+                     "--no-progress"])
+        assert code == 2 and message in capsys.readouterr().err
+        assert not (run / "finetune").exists()

@@ -111,6 +111,10 @@ class Finetuner(nn.Module):
     def keeps_inference_data(cls, config: Any) -> bool:
         return False
 
+    @classmethod
+    def check(cls, agent, config: Any) -> None:
+        """Refuse options that do not fit the agent, before any work (one line, ConfigError)."""
+
     def rollout_skill(self, step: int, episode_start: bool, current: torch.Tensor | None,
                       generator: torch.Generator | None = None) -> torch.Tensor | None:
         """The skill to act with at ``step``; ``current`` is the one of the previous step."""

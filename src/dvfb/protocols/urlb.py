@@ -72,17 +72,21 @@ class DDPGFinetuner(Finetuner):
         core.critic, core.critic_target = fresh, target
         core.make_optimizers()
         spec = agent.skill
+        self.check(agent, config)
         if spec.has_skill and config.skill == "prior_mean":
-            if spec.kind != "box":
-                raise ConfigError(f"--finetune.skill prior_mean needs a box prior; {agent.name!r} has a "
-                                  f"{spec.kind} skill")
             self.skill = torch.full((spec.dim,), (spec.low + spec.high) / 2, device=agent.device)
         elif spec.has_skill and config.skill == "random_fixed":
             self.skill = agent.sample_skill(1)[0]
-        elif spec.has_skill and config.skill == "regressed":
-            agent.regress_skill(torch.zeros(1, agent.obs_dim, device=agent.device),
-                                torch.ones(1, 1, device=agent.device))  # one line now if it has none
         self.replay = None
+
+    @classmethod
+    def check(cls, agent, config: DDPGFinetuneConfig) -> None:
+        spec = agent.skill
+        if spec.has_skill and config.skill == "prior_mean" and spec.kind != "box":
+            raise ConfigError(f"--finetune.skill prior_mean needs a box prior; {agent.name!r} has a {spec.kind} skill")
+        if spec.has_skill and config.skill == "regressed":
+            agent.regress_skill(torch.zeros(1, agent.obs_dim, device=agent.device),
+                                torch.ones(1, 1, device=agent.device))  # its one-line error if it has none
 
     def bind_replay(self, replay) -> None:
         self.replay = replay

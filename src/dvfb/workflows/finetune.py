@@ -121,6 +121,7 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
         seed=config.seed if seed is None else seed, device=str(agent.device),
         inference=merge(config.inference, inference or {}, "inference."),
         finetune=merge(config.finetune, finetune or {}, "finetune."))
+    finetuner_class(get_spec(config.agent).finetuner).check(agent, run_config.finetune)
     path = run.path / "finetune" / check_run_name(name or task)
     if resume:
         RunDir.open(path)  # names what is missing before anything else happens
