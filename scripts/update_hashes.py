@@ -15,32 +15,13 @@ import hashlib
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from dvfb import envs  # noqa: E402
 from dvfb.agents import agent_names, make_agent  # noqa: E402
-from dvfb.replay import ReplayBuffer  # noqa: E402
-from tiny import tiny_run_config  # noqa: E402
-
-
-def filled_replay(agent, obs_dim: int, action_dim: int, steps: int = 400) -> ReplayBuffer:
-    rng = np.random.default_rng(0)
-    env = envs.make("point_mass_maze_reach_top_left", seed=0)
-    replay = ReplayBuffer(10_000, obs_dim, action_dim, agent.skill_dim, max_episode_length=1000)
-    obs, _ = env.reset(seed=0)
-    replay.start_episode(obs)
-    for t in range(steps):
-        if t == steps // 2:
-            obs, _ = env.reset()
-            replay.start_episode(obs)
-        skill = agent.sample_skill(1)
-        action = rng.uniform(-1, 1, action_dim).astype(np.float32)
-        obs, reward, terminated, _, _ = env.step(action)
-        replay.add(action, reward, 0.0 if terminated else 1.0, obs, None if skill is None else skill[0].numpy())
-    return replay
+from tiny import filled_replay, tiny_run_config  # noqa: E402
 
 
 def update_hash(name: str) -> str:
@@ -48,7 +29,7 @@ def update_hash(name: str) -> str:
     env = envs.make("point_mass_maze_reach_top_left")
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     agent = make_agent(name, obs_dim, action_dim, tiny_run_config(name), "cpu")
-    replay = filled_replay(agent, obs_dim, action_dim)
+    replay = filled_replay(agent)
     needs = agent.replay_needs()
     for _ in range(3):
         agent.update(needs.sample(replay))

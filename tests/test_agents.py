@@ -21,14 +21,13 @@ from dvfb.agents import agent_names, get_spec, make_agent
 from dvfb.cli import main
 from dvfb.errors import CheckpointError
 from dvfb.protocols import finetuner_class, protocols_of
-from dvfb.replay import ReplayBuffer
 from dvfb.runs import RunDir, load_snapshot
 from dvfb.workflows.snapshots import agent_from_snapshot, check_snapshot, load_pretrained_agent, snapshot_state
 from dvfb.workflows.config import load_run_config, run_config_class
 from dvfb.workflows.finetune import finetune
 from dvfb.workflows.pretrain import pretrain
 from dvfb.workflows.zeroshot import zeroshot
-from tiny import tiny_run_config
+from tiny import filled_replay, tiny_run_config
 
 AGENTS = agent_names()
 DVFB_REWARDS = ("rnd_ce", "icm_apt", "proto", "cic")
@@ -37,25 +36,6 @@ FAST_INFERENCE = {"steps": 300, "random_action_steps": 100, "samples": 300, "eva
 FAST_SELECTION = {"steps": 2000, "eval_episodes": 1}
 MAZE = envs.make("point_mass_maze_reach_top_left")
 OBS, ACT = MAZE.observation_space.shape[0], MAZE.action_space.shape[0]
-
-
-def filled_replay(agent, steps: int = 400, seed: int = 0) -> ReplayBuffer:
-    """A replay buffer of real maze transitions (two episodes of uniform actions), with skills
-    drawn from the agent's prior when it has one."""
-    rng = np.random.default_rng(seed)
-    env = envs.make("point_mass_maze_reach_top_left", seed=seed)
-    replay = ReplayBuffer(10_000, OBS, ACT, agent.skill_dim, max_episode_length=1000)
-    obs, _ = env.reset(seed=seed)
-    replay.start_episode(obs)
-    for t in range(steps):
-        if t == steps // 2:
-            obs, _ = env.reset()
-            replay.start_episode(obs)
-        skill = agent.sample_skill(1)
-        action = rng.uniform(-1, 1, ACT).astype(np.float32)
-        obs, reward, terminated, _, _ = env.step(action)
-        replay.add(action, reward, 0.0 if terminated else 1.0, obs, None if skill is None else skill[0].numpy())
-    return replay
 
 
 def build(agent_name: str, **sections):

@@ -176,7 +176,7 @@ def test_urlb_fine_tuning_skill_modes():
 def test_an_agent_with_a_run_generator_draws_nothing_from_the_global_stream(agent_name):
     """Skills, policy noise, the update's noise and the reward modules' samples all come from the
     run's generator: with the same generator state, changing torch's global stream changes nothing."""
-    from test_agents import filled_replay
+    from tiny import filled_replay
 
     results = []
     for global_seed in (1, 2):

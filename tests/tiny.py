@@ -1,4 +1,5 @@
-"""Tiny network sizes and configs shared by the agent and network tests (fast on one CPU thread)."""
+"""Tiny network sizes and configs shared by the agent and network tests (fast on one CPU thread), and
+a replay of real maze transitions for updates."""
 
 from dvfb.agents.dvfb import ExplorationConfig
 from dvfb.agents.fb import FBConfig
@@ -52,3 +53,28 @@ def tiny_run_config(agent: str, **top_level):
     top.update(top_level)
     config = preset_config("small", agent, **top)
     return merge(config, {name: TINY_SECTIONS[name] for name in get_spec(agent).sections if name in TINY_SECTIONS})
+
+
+def filled_replay(agent, steps: int = 400, seed: int = 0):
+    """A replay buffer of real maze transitions (two episodes of uniform actions), with skills
+    drawn from the agent's prior when it has one."""
+    import numpy as np
+
+    from dvfb import envs
+    from dvfb.replay import ReplayBuffer
+
+    rng = np.random.default_rng(seed)
+    env = envs.make("point_mass_maze_reach_top_left", seed=seed)
+    obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    replay = ReplayBuffer(10_000, obs_dim, action_dim, agent.skill_dim, max_episode_length=1000)
+    obs, _ = env.reset(seed=seed)
+    replay.start_episode(obs)
+    for t in range(steps):
+        if t == steps // 2:
+            obs, _ = env.reset()
+            replay.start_episode(obs)
+        skill = agent.sample_skill(1)
+        action = rng.uniform(-1, 1, action_dim).astype(np.float32)
+        obs, reward, terminated, _, _ = env.step(action)
+        replay.add(action, reward, 0.0 if terminated else 1.0, obs, None if skill is None else skill[0].numpy())
+    return replay
