@@ -367,3 +367,32 @@ def test_nstep_needs_n_steps_in_one_episode():
     with pytest.raises(ValueError, match="3-step successor"):
         buffer.sample(8, nstep=3)
     assert len(buffer.sample(8, nstep=2)) == 8
+
+
+def test_declared_columns_are_stored_sampled_saved_and_counted():
+    """A column declared by what needs it (here a 3-wide 'physics' state) rides with every step: in
+    1-step and n-step batches (the row of s_t), chunks, the state round trip and the memory estimate."""
+    buffer = ReplayBuffer(100, 2, 1, z_dim=2, max_episode_length=10, columns={"physics": 3})
+    assert buffer.nbytes == ReplayBuffer.estimate_nbytes(100, 2, 1, 2, 10, columns={"physics": 3})
+    assert buffer.nbytes > ReplayBuffer.estimate_nbytes(100, 2, 1, 2, 10)
+    buffer.start_episode(np.zeros(2, np.float32))
+    for t in range(8):
+        buffer.add(np.full(1, t, np.float32), float(t), 1.0, np.full(2, t + 1, np.float32),
+                   np.full(2, -t, np.float32), physics=np.full(3, 10 * t, np.float32))
+    batch = buffer.sample(64, nstep=3, generator=torch.Generator().manual_seed(0))
+    step = batch.action[:, 0]
+    assert torch.equal(batch.columns["physics"], (10 * step).unsqueeze(1).expand(-1, 3))
+    assert torch.equal(batch.z, (-step).unsqueeze(1).expand(-1, 2))
+    assert all(torch.equal(c.columns["physics"], batch.columns["physics"][i * 32:(i + 1) * 32])
+               for i, c in enumerate(batch.chunk(2)))
+    restored = ReplayBuffer(100, 2, 1, z_dim=2, max_episode_length=10, columns={"physics": 3})
+    restored.load_state_dict(buffer.state_dict())
+    assert torch.equal(restored.transitions().columns["physics"], buffer.transitions().columns["physics"])
+    plain = ReplayBuffer(100, 2, 1, z_dim=2, max_episode_length=10)
+    with pytest.raises(CheckpointError, match="columns"):
+        plain.load_state_dict(buffer.state_dict())
+    buffer.start_episode(np.zeros(2, np.float32))
+    with pytest.raises(ValueError, match="physics"):
+        buffer.add(np.zeros(1, np.float32), 0.0, 1.0, np.zeros(2, np.float32), np.zeros(2, np.float32))
+    with pytest.raises(ConfigError, match="skill"):
+        ReplayBuffer(100, 2, 1, max_episode_length=10, columns={"skill": 2})

@@ -2,14 +2,16 @@
 
 What is stored
     Every environment step of every stored episode: the observation, the action taken in it, the
-    reward and environment discount returned with the next observation, and the rollout task
-    vector z (``z_dim`` may be 0 for agents without one). Everything is float32.
+    reward and environment discount returned with the next observation, the rollout skill z (as
+    wide as the agent's declared skill: ``z_dim`` 0 for agents without one), and any further
+    per-step columns declared by what needs them (``columns={"physics": 18}``: the next issues'
+    physics states for datasets). Everything is float32.
 
 Layout
     One preallocated array ``data[num_slots, max_episode_length + 1, width]``: an episode per slot,
     a row per time step, and the fields side by side in a row::
 
-        width = obs_dim | action_dim | 1 (reward) | 1 (env discount) | z_dim
+        width = obs_dim | action_dim | 1 (reward) | 1 (env discount) | z_dim | declared columns
 
     Row ``t`` of an episode holds ``obs_t`` and the action, reward, discount and z of step ``t``
     (reward and discount are the ones the environment returned together with ``obs_{t+1}``).
@@ -49,7 +51,8 @@ Devices
 Memory
     ``estimate_nbytes(2_000_000, 24, 6, 50)`` (2M Walker transitions: obs 24, action 6, z 50,
     float32, episodes of 1000 steps) = 657,000,336 bytes (626.6 MiB): 2,001 slots x 1,001 rows x
-    82 floats, plus 16,008 bytes of episode lengths. The host staging copy used on an accelerator
+    82 floats, plus 16,008 bytes of episode lengths. Declared columns add their widths to the 82
+    (``estimate_nbytes(..., columns=...)``). The host staging copy used on an accelerator
     (one episode, 328 kB here) is not counted.
 """
 
@@ -76,7 +79,9 @@ class Batch:
     one-step batches, and ``gamma^n`` times the n environment discounts for n-step batches, whose
     ``next_obs`` is ``s_{t+n}`` and ``reward`` the discounted n-step sum (docs/methods.md §6).
     ``future_obs`` is ``obs_{t+2}`` when it was requested, else None.
-    ``z`` is the stored rollout task vector, (B, z_dim), or None when the buffer has ``z_dim = 0``.
+    ``z`` is the stored rollout skill, (B, z_dim), or None when the buffer has no skill column.
+    ``columns`` holds the other declared per-step columns of ``s_t``'s row by name (empty unless
+    the buffer declares some, e.g. physics states for datasets).
     """
 
     obs: torch.Tensor
@@ -86,6 +91,7 @@ class Batch:
     next_obs: torch.Tensor
     future_obs: torch.Tensor | None
     z: torch.Tensor | None
+    columns: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)
 
     def __len__(self) -> int:
         return self.obs.shape[0]
@@ -98,7 +104,9 @@ class Batch:
         def part(x: torch.Tensor | None, i: int) -> torch.Tensor | None:
             return None if x is None else x[i * size:(i + 1) * size]
 
-        return [Batch(*(part(getattr(self, f.name), i) for f in dataclasses.fields(self))) for i in range(n)]
+        tensors = [f.name for f in dataclasses.fields(self) if f.name != "columns"]
+        return [Batch(*(part(getattr(self, name), i) for name in tensors),
+                      columns={k: part(v, i) for k, v in self.columns.items()}) for i in range(n)]
 
     def to(self, device: str | torch.device) -> Batch:
         """The same batch with every tensor moved to ``device``."""
@@ -107,7 +115,8 @@ class Batch:
             return None if x is None else x.to(device)
 
         return Batch(move(self.obs), move(self.action), move(self.reward), move(self.discount),
-                     move(self.next_obs), move(self.future_obs), move(self.z))
+                     move(self.next_obs), move(self.future_obs), move(self.z),
+                     {k: move(v) for k, v in self.columns.items()})
 
 
 def _num_slots(capacity: int, max_episode_length: int) -> int:
@@ -132,7 +141,7 @@ class ReplayBuffer:
 
     def __init__(self, capacity: int, obs_dim: int, action_dim: int, z_dim: int = 0,
                  max_episode_length: int = 1000, device: str | torch.device = "cpu",
-                 stage_on_host: bool | None = None) -> None:
+                 stage_on_host: bool | None = None, columns: dict[str, int] | None = None) -> None:
         for name, value, minimum in (("capacity", capacity, 1), ("obs_dim", obs_dim, 1),
                                      ("action_dim", action_dim, 1), ("z_dim", z_dim, 0),
                                      ("max_episode_length", max_episode_length, 1)):
@@ -156,12 +165,24 @@ class ReplayBuffer:
         if not self._staged and self.device.type != "cpu":
             raise ConfigError(f"a replay buffer on {self.device} needs stage_on_host")
 
+        # Declared per-step columns after the skill, by name and width (what needs them declares
+        # them: e.g. physics states for datasets).
+        self.columns = {name: int(width) for name, width in (columns or {}).items()}
+        for name, width in self.columns.items():
+            if name in ("skill", "obs", "action", "reward", "discount") or width < 1:
+                raise ConfigError(f"replay column {name!r} of width {width}: names must be new and widths >= 1")
+
         # Column layout of one row.
         self._action_col = self.obs_dim
         self._reward_col = self._action_col + self.action_dim
         self._discount_col = self._reward_col + 1
         self._z_col = self._discount_col + 1
-        self.width = self._z_col + self.z_dim
+        self._column_slices: dict[str, slice] = {}
+        start = self._z_col + self.z_dim
+        for name, width in self.columns.items():
+            self._column_slices[name] = slice(start, start + width)
+            start += width
+        self.width = start
 
         rows = self.max_episode_length + 1
         shape = (self.num_slots, rows, self.width)
@@ -177,13 +198,15 @@ class ReplayBuffer:
         self._w_action = host[:, :, self._action_col: self._reward_col]
         self._w_reward = host[:, :, self._reward_col]
         self._w_discount = host[:, :, self._discount_col]
-        self._w_z = host[:, :, self._z_col:]
+        self._w_z = host[:, :, self._z_col: self._z_col + self.z_dim]
+        self._w_columns = {name: host[:, :, cols] for name, cols in self._column_slices.items()}
         # Field views of the storage that sampling reads (torch, on `device`).
         self._s_obs = self._store[:, :, : self.obs_dim]
         self._s_action = self._store[:, :, self._action_col: self._reward_col]
         self._s_reward = self._store[:, :, self._reward_col: self._reward_col + 1]
         self._s_discount = self._store[:, :, self._discount_col: self._discount_col + 1]
-        self._s_z = self._store[:, :, self._z_col:]
+        self._s_z = self._store[:, :, self._z_col: self._z_col + self.z_dim]
+        self._s_columns = {name: self._store[:, :, cols] for name, cols in self._column_slices.items()}
 
         self._lengths = np.zeros(self.num_slots, dtype=np.int64)  # transitions per slot
         self._reset_bookkeeping()
@@ -204,10 +227,11 @@ class ReplayBuffer:
 
     @staticmethod
     def estimate_nbytes(capacity: int, obs_dim: int, action_dim: int, z_dim: int,
-                        max_episode_length: int = 1000) -> int:
-        """Bytes of preallocated storage for these sizes (the value :attr:`nbytes` will have)."""
+                        max_episode_length: int = 1000, columns: dict[str, int] | None = None) -> int:
+        """Bytes of preallocated storage for these sizes and declared columns (the value
+        :attr:`nbytes` will have)."""
         slots = _num_slots(capacity, max_episode_length)
-        width = obs_dim + action_dim + 2 + z_dim
+        width = obs_dim + action_dim + 2 + z_dim + sum((columns or {}).values())
         return (slots * (max_episode_length + 1) * width * _BYTES_PER_FLOAT
                 + slots * _BYTES_PER_LENGTH)
 
@@ -244,12 +268,13 @@ class ReplayBuffer:
         self._flushed_rows = 0
         self._w_obs[self._write_slot, 0] = obs
 
-    def add(self, action, reward: float, discount: float, next_obs, z=None) -> None:
+    def add(self, action, reward: float, discount: float, next_obs, z=None, **columns) -> None:
         """Record one environment step of the current episode.
 
         ``action`` was taken in the latest observation; ``reward`` and ``discount`` are what the
-        environment returned together with ``next_obs``; ``z`` is the task vector the action was
-        chosen for (required when ``z_dim > 0``).
+        environment returned together with ``next_obs``; ``z`` is the skill the action was chosen
+        for (required when ``z_dim > 0``); ``columns`` the declared columns of the step's row (each
+        required).
         """
         t = self._cur_len
         if t >= self.max_episode_length or not self._open:
@@ -263,6 +288,11 @@ class ReplayBuffer:
             if z is None:
                 raise ValueError(f"this replay buffer stores z (z_dim={self.z_dim}); pass z=")
             self._w_z[w, t] = z
+        if self.columns:
+            if columns.keys() != self.columns.keys():
+                raise ValueError(f"this replay buffer stores the columns {sorted(self.columns)}; got {sorted(columns)}")
+            for name, value in columns.items():
+                self._w_columns[name][w, t] = value
         self._cur_len = t + 1
         self._lengths[self._cur_slot] = t + 1
         self._num_transitions += 1
@@ -370,6 +400,7 @@ class ReplayBuffer:
             next_obs=self._s_obs[slot, step + 1],
             future_obs=self._s_obs[slot, step + 2] if need_future else None,
             z=self._s_z[slot, step] if self.z_dim else None,
+            columns={name: view[slot, step] for name, view in self._s_columns.items()},
         )
 
     def _gather_nstep(self, slot: torch.Tensor, step: torch.Tensor, gamma: float, need_future: bool,
@@ -390,15 +421,19 @@ class ReplayBuffer:
             next_obs=self._s_obs[slot, step + nstep],
             future_obs=self._s_obs[slot, step + 2] if need_future else None,
             z=self._s_z[slot, step] if self.z_dim else None,
+            columns={name: view[slot, step] for name, view in self._s_columns.items()},
         )
 
     # ------------------------------------------------------------------------------------------
     # checkpointing
 
     def _shape_info(self) -> dict:
-        return {"capacity": self.capacity, "obs_dim": self.obs_dim,
+        info = {"capacity": self.capacity, "obs_dim": self.obs_dim,
                 "action_dim": self.action_dim, "z_dim": self.z_dim,
                 "max_episode_length": self.max_episode_length}
+        if self.columns:  # only then: states of buffers without declared columns read as before
+            info["columns"] = dict(self.columns)
+        return info
 
     def state_dict(self) -> dict:
         """The stored episodes, compactly (only filled rows), as CPU tensors and plain values.
@@ -424,8 +459,9 @@ class ReplayBuffer:
             if state.get("format") != _STATE_FORMAT:
                 raise CheckpointError(
                     f"replay state has format {state.get('format')!r}, expected {_STATE_FORMAT}")
+            expected = {"columns": None, **self._shape_info()}  # no declared columns: the key is absent
             mismatched = [f"{k}: saved {state.get(k)!r}, buffer {v!r}"
-                          for k, v in self._shape_info().items() if state.get(k) != v]
+                          for k, v in expected.items() if state.get(k) != v]
             if mismatched:
                 raise CheckpointError("replay state does not match this buffer ("
                                       + "; ".join(mismatched) + ")")
