@@ -31,9 +31,9 @@ from tiny import filled_replay, tiny_run_config
 
 AGENTS = agent_names()
 DVFB_REWARDS = ("rnd_ce", "icm_apt", "proto", "cic")
-# Skill selection needs whole episodes: two maze episodes of 1000 steps.
+# Skill selection needs whole episodes: one maze episode of 1000 steps.
 FAST_INFERENCE = {"steps": 300, "random_action_steps": 100, "samples": 300, "eval_episodes": 1}
-FAST_SELECTION = {"steps": 2000, "eval_episodes": 1}
+FAST_SELECTION = {"steps": 1000, "eval_episodes": 1}
 MAZE = envs.make("point_mass_maze_reach_top_left")
 OBS, ACT = MAZE.observation_space.shape[0], MAZE.action_space.shape[0]
 
