@@ -27,6 +27,8 @@ from dvfb.rewards.proto import ProtoConfig, ProtoReward
 from dvfb.rewards.rnd import RNDReward
 
 EXPLORATION_REWARDS = ("rnd_ce", "icm_apt", "proto", "cic")
+# The batch column of B's labels, the skill DVFB's contrastive modules pair each transition with.
+LABEL_COLUMN = "b_label"
 
 
 @dataclass
@@ -89,6 +91,9 @@ class DVFBAgent(FBAgent):
             self.variant_reward = ProtoReward(self.obs_dim, self.action_dim, self.variant_configs["proto"])
         else:  # cic: its NCE pairs each transition with B's label, as DVFB's own CE module does
             self.variant_reward = CICReward(self.obs_dim, c.z_dim, self.variant_configs["cic"])
+        for module in (self.contrastive, self.variant_reward):
+            if module is not None:
+                module.skill_column = LABEL_COLUMN  # the modules that pair rows with a skill read B's
 
     def _reward_modules(self) -> dict[str, torch.nn.Module]:
         """The intrinsic-reward modules, under the names of their optimisers."""
@@ -137,12 +142,13 @@ class DVFBAgent(FBAgent):
     def intrinsic_reward(self, batch: Batch, labels: torch.Tensor, metrics: dict) -> torch.Tensor:
         """Train the reward modules on the batch, then score it with the updated modules (§7.2 steps 3-6).
 
-        The modules read the skill of a row from ``batch.z``: here B's (detached) label of the
-        transition, as the CE and CIC encoders pair transitions with B (§4.6).
+        The CE and CIC encoders pair each transition with B's (detached) label of it (§4.6): the
+        label travels in its own column, ``b_label``, which those modules read (their
+        ``skill_column``); ``batch.z`` stays the stored rollout skill.
         """
         e = self.exploration
         run = self.net_runner
-        labelled = dataclasses.replace(batch, z=labels)
+        labelled = dataclasses.replace(batch, columns={**batch.columns, LABEL_COLUMN: labels})
         if self.variant_reward is not None:
             reward = self.variant_reward.update_and_score(labelled, metrics, run)
         else:

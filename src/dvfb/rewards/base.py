@@ -10,8 +10,9 @@ update with the sampled :class:`~dvfb.replay.Batch`:
   forward pass of the update.
 
 What a row's fields mean is the agent's business: for the URLB-style agents ``batch.next_obs`` is
-the n-step successor ``s_{t+n}``; for DVFB it is ``s_{t+1}``. ``batch.z`` is the skill column a
-module may read (DVFB passes B's labels there).
+the n-step successor ``s_{t+n}``; for DVFB it is ``s_{t+1}``. A module that pairs rows with skills
+reads them with :meth:`IntrinsicReward.skills`: the stored skill ``batch.z``, or the column its
+owner names in ``skill_column`` (DVFB's B labels, ``batch.columns["b_label"]``).
 
 ``run(net, *inputs)`` is how a module calls its networks: agents pass their
 :class:`~dvfb.execution.NetRunner` so that precision and compilation apply; the default calls
@@ -39,6 +40,13 @@ class IntrinsicReward(nn.Module):
     # The run's random stream for modules that draw (Proto's and CeSD's samples, SMM's noise);
     # None: torch's global one. Set by the owning agent (Agent.use_generator).
     generator: torch.Generator | None = None
+    # Which batch column holds the skill each row is paired with: None for the stored skill
+    # (batch.z); DVFB names the column of B's labels.
+    skill_column: str | None = None
+
+    def skills(self, batch: Batch) -> torch.Tensor:
+        """The skill of every row this module pairs the row with (see ``skill_column``)."""
+        return batch.z if self.skill_column is None else batch.columns[self.skill_column]
 
     def make_optimizer(self, lr: float, fused: bool = True) -> None:
         """Create ``self.optimizer`` (Adam) over the module's trainable parameters; the agent calls

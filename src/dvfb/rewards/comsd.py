@@ -80,9 +80,9 @@ class ComSDReward(CICReward):
         c = self.config
         r_exp = super().score(batch, run)
         key = self.encoders.key(batch.obs, batch.next_obs, run)
-        query = run(self.encoders.skill_net, batch.z)
+        query = run(self.encoders.skill_net, self.skills(batch))
         r_div = diversity_reward(query, key, c.temperature)
-        beta = skill_weight(batch.z, c.weight_low, c.weight_high, c.weight_mapping)
+        beta = skill_weight(self.skills(batch), c.weight_low, c.weight_high, c.weight_mapping)
         return r_exp, r_div, beta
 
     @torch.no_grad()

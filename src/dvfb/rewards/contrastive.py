@@ -7,7 +7,8 @@
 * :class:`ContrastiveEntropyReward` -- DVFB's CE module: NCE step, then the CE reward;
 * :class:`CICReward` -- CIC's module: NCE step, then the APT-CIC particle entropy of g(s').
 
-Both modules read the skill of each row from ``batch.z`` (DVFB passes the detached B labels).
+Both modules read the skill of each row with ``self.skills(batch)``: the stored skill, or DVFB's
+detached B labels (its ``skill_column``).
 """
 
 from __future__ import annotations
@@ -109,7 +110,7 @@ class ContrastiveEntropyReward(IntrinsicReward):
 
     def _key_query(self, batch: Batch, run: Runner) -> tuple[torch.Tensor, torch.Tensor]:
         key = self.encoders.key(batch.obs, batch.next_obs, run)
-        return key, run(self.encoders.skill_net, batch.z)
+        return key, run(self.encoders.skill_net, self.skills(batch))
 
     def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
         key, query = self._key_query(batch, run)
@@ -158,7 +159,7 @@ class CICReward(IntrinsicReward):
 
     def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
         key = self.encoders.key(batch.obs, batch.next_obs, run)
-        query = run(self.encoders.skill_net, batch.z)
+        query = run(self.encoders.skill_net, self.skills(batch))
         loss = nce_loss(query, key, self.config.temperature)
         self.step(loss)
         return {"nce_loss": loss.detach()}
