@@ -353,3 +353,32 @@ def test_a_fine_tuning_skill_option_the_method_cannot_take_is_refused_before_any
                      "--no-progress"])
         assert code == 2 and message in capsys.readouterr().err
         assert not (run / "finetune").exists()
+
+
+def test_api_inputs_of_the_wrong_shape_are_named(finished_run):
+    import numpy as np
+
+    import dvfb
+    from dvfb.errors import ConfigError
+
+    model = dvfb.load(finished_run)
+    z = model.infer_z(np.zeros((8, 4), np.float32), np.zeros((8, 4), np.float32), np.ones(8, np.float32))
+    with pytest.raises(ConfigError, match="obs has shape \\(5,\\).*4 values"):
+        model.act(np.zeros(5, np.float32), z)
+    with pytest.raises(ConfigError, match="z has 3 values"):
+        model.act(np.zeros(4, np.float32), np.zeros(3, np.float32))
+    with pytest.raises(ConfigError, match="obs has shape \\(8, 5\\)"):
+        model.infer_z(np.zeros((8, 5), np.float32), np.zeros((8, 5), np.float32), np.ones(8, np.float32))
+    assert model.act(np.zeros(4, np.float32), z).shape == (2,)
+
+
+@pytest.mark.parametrize("command", [["zeroshot", "RUN", "--task", "point_mass_maze_reach_top_left"],
+                                     ["finetune", "RUN", "--task", "point_mass_maze_reach_top_left"],
+                                     ["analyze-exploration", "RUN"], ["random-policy", "--domain", "point_mass_maze"]])
+def test_a_negative_seed_is_one_line_exit_2(finished_run, command, capsys):
+    argv = [str(finished_run) if part == "RUN" else part for part in command] + ["--seed", "-1"]
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "--seed" in err[-1] and "integer >= 0" in err[-1]

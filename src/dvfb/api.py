@@ -70,6 +70,10 @@ class PretrainedAgent:
             return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=device)
 
         obs_t, next_t, reward_t = tensor(obs), tensor(next_obs), tensor(rewards).reshape(-1)
+        for name, value in (("obs", obs_t), ("next_obs", next_t)):
+            if value.dim() != 2 or value.shape[1] != self.agent.obs_dim:
+                raise ConfigError(f"{name} has shape {tuple(value.shape)}; it must be (N, {self.agent.obs_dim}), one "
+                                  f"{self.config.domain} observation per row")
         if not (obs_t.shape[0] == next_t.shape[0] == reward_t.shape[0]):
             raise ConfigError(f"obs, next_obs and rewards have {obs_t.shape[0]}, {next_t.shape[0]} and "
                               f"{reward_t.shape[0]} rows; they must match")
@@ -79,9 +83,18 @@ class PretrainedAgent:
         """One action: the policy's mean (or a rollout sample with ``explore``)."""
         if z is None and self.agent.skill_dim:
             raise ConfigError(f"{self.name!r} acts with a skill: pass z (from infer_z)")
+        if z is not None and not self.agent.skill_dim:
+            raise ConfigError(f"{self.name!r} has a single policy and takes no z; call act(obs) without it")
         if z is not None:
             z = torch.as_tensor(np.asarray(z) if not isinstance(z, torch.Tensor) else z, dtype=torch.float32)
-        return self.agent.act(np.asarray(obs, dtype=np.float32), z, explore)
+            if z.numel() != self.agent.skill_dim:
+                raise ConfigError(f"z has {z.numel()} values; {self.name!r}'s skill has {self.agent.skill_dim}")
+            z = z.reshape(-1).to(self.agent.device)
+        obs = np.asarray(obs, dtype=np.float32)
+        if obs.shape != (self.agent.obs_dim,):
+            raise ConfigError(f"obs has shape {obs.shape}; a {self.config.domain} observation has "
+                              f"{self.agent.obs_dim} values")
+        return self.agent.act(obs, z, explore)
 
     def policy(self, z: torch.Tensor | None = None, explore: bool = False) -> Callable[[np.ndarray], np.ndarray]:
         """``obs -> action`` with the skill fixed."""

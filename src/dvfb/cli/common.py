@@ -79,7 +79,18 @@ def protocol_overrides(args: argparse.Namespace, kind: str) -> dict:
 def add_snapshot_and_seed(p: argparse.ArgumentParser, seed_what: str = "seed") -> None:
     """--snapshot and --seed of the commands that load a pre-trained run's agent."""
     p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
-    p.add_argument("--seed", type=int, default=None, help=f"{seed_what} (default: the run's seed)")
+    p.add_argument("--seed", type=seed_value, default=None, help=f"{seed_what} (default: the run's seed)")
+
+
+def seed_value(text: str) -> int:
+    """A seed: an integer >= 0 (argparse names the flag when this raises)."""
+    value = int(text)
+    if value < 0:
+        raise ValueError(text)
+    return value
+
+
+seed_value.__name__ = "seed (an integer >= 0)"  # how argparse names the type in its one-line error
 
 
 def progress_flag(p: argparse.ArgumentParser) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dvfb.cli.common import seed_value
 from dvfb.errors import ConfigError
 
 
@@ -38,7 +39,7 @@ def register(sub, agent: str) -> None:
                        description="Evaluate a uniform-random policy on every task of a domain.")
     p.add_argument("--domain", required=True, help="domain name")
     p.add_argument("--episodes", type=int, default=10, help="episodes per task (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="(default: %(default)s)")
+    p.add_argument("--seed", type=seed_value, default=0, help="(default: %(default)s)")
     p.add_argument("--output", default=None, help="write the returns to this JSON file")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.set_defaults(func=cmd_random_policy)
