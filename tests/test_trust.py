@@ -63,6 +63,7 @@ BAD_PRETRAIN = [
     (["--seed", "-1"], "--seed -1 is out of range: it must be >= 0"),
     (["--fb.z-dim", "0"], "--fb.z-dim 0 is out of range"),
     (["--replay-capacity", "1000000000000"], "lower --replay-capacity"),
+    (["--replay-capacity", "500"], "--replay-capacity 500 must be at least the episode length"),
     (["--device", "cuda"], "device 'cuda' was requested but torch sees no CUDA device"),
     (["--resume", "--overwrite"], "--resume and --overwrite contradict each other"),
 ]
@@ -382,3 +383,13 @@ def test_a_negative_seed_is_one_line_exit_2(finished_run, command, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert "--seed" in err[-1] and "integer >= 0" in err[-1]
+
+
+def test_an_n_step_longer_than_the_episodes_is_one_line_and_creates_nothing(tmp_path, capsys):
+    run = tmp_path / "rnd"
+    argv = ["pretrain", "--agent", "rnd", *MAZE, "--frames", "1000", "--run-dir", str(run), "--no-progress",
+            "--ddpg.nstep", "5000", "--ddpg.hidden-dim", "32", "--ddpg.batch-size", "32"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "n-step n = 5000" in err[0] and "1000 steps" in err[0]
+    assert not run.exists()

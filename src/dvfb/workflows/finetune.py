@@ -45,7 +45,7 @@ from dvfb.training import loop
 from dvfb.training.loop import EpisodeState, OnlineCollector
 from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, notify
 from dvfb.training.seeding import check_resume_format, restore_rng_state, rng_state, run_generator, seed_everything
-from dvfb.workflows.resources import check_task_in_domain
+from dvfb.workflows.resources import check_replay, check_task_in_domain
 from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 from dvfb.workflows.config import protocol_fields
 from dvfb.workflows.evaluate import Evaluation, evaluate_policy
@@ -122,6 +122,8 @@ def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, in
         inference=merge(config.inference, inference or {}, "inference."),
         finetune=merge(config.finetune, finetune or {}, "finetune."))
     finetuner_class(get_spec(config.agent).finetuner).check(agent, run_config.finetune)
+    check_replay(run_config.finetune.replay_capacity, "--finetune.replay-capacity", agent.replay_needs(),
+                 envs.TASKS[task].episode_length, config.domain)
     path = run.path / "finetune" / check_run_name(name or task)
     if resume:
         RunDir.open(path)  # names what is missing before anything else happens

@@ -51,7 +51,7 @@ from dvfb.training import loop
 from dvfb.training.loop import EpisodeState, OnlineCollector
 from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, notify
 from dvfb.training.seeding import check_resume_format, restore_rng_state, rng_state, run_generator, seed_everything
-from dvfb.workflows.resources import check_memory, learner_state_bytes, setup_torch
+from dvfb.workflows.resources import check_memory, check_replay, learner_state_bytes, setup_torch
 from dvfb.workflows.snapshots import snapshot_name, snapshot_state
 from dvfb.workflows.config import PretrainConfig, load_run_config
 
@@ -104,6 +104,7 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
     action_dim = env.action_space.shape[0]
     agent = make_agent(config.agent, obs_dim, action_dim, config, device)
     episode_length = envs.TASKS[envs.pretrain_task(config.domain)].episode_length
+    check_replay(config.replay_capacity, "--replay-capacity", agent.replay_needs(), episode_length, config.domain)
     check_memory({"replay": ReplayBuffer.estimate_nbytes(config.replay_capacity, obs_dim, action_dim, agent.skill_dim,
                                                          episode_length),
                   "networks": learner_state_bytes(agent)}, f"pretrain {config.agent} {config.domain}", device)

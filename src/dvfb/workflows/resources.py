@@ -67,3 +67,16 @@ def check_task_in_domain(task: str, domain: str) -> None:
     if task_domain != domain:
         raise ConfigError(f"task {task!r} belongs to domain {task_domain!r}, but the run was pre-trained "
                           f"on {domain!r}; valid tasks: {', '.join(envs.tasks_of_domain(domain))}")
+
+
+def check_replay(capacity: int, capacity_flag: str, needs, episode_length: int, domain: str) -> None:
+    """Before anything is created: the replay must hold a whole episode, and the batches the learner
+    asks for (n-step successors, s_{t+2}) must exist within one episode."""
+    if capacity < episode_length:
+        raise ConfigError(f"{capacity_flag} {capacity} must be at least the episode length of {domain} "
+                          f"({episode_length}), so that the episode in progress fits")
+    horizon = max(needs.nstep, 2 if needs.need_future else 1)
+    if horizon >= episode_length:
+        raise ConfigError(f"the learner's batches need successors {horizon} steps ahead (n-step n = {needs.nstep}), "
+                          f"but {domain} episodes have {episode_length} steps; lower the n-step setting")
+
