@@ -393,3 +393,25 @@ def test_an_n_step_longer_than_the_episodes_is_one_line_and_creates_nothing(tmp_
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "n-step n = 5000" in err[0] and "1000 steps" in err[0]
     assert not run.exists()
+
+
+def test_more_bad_inputs_are_one_line_exit_2_with_nothing_written(finished_run, tmp_path, capsys):
+    report_file = tmp_path / "report.txt"
+    report_file.write_text("keep")
+    output_dir = tmp_path / "outdir"
+    output_dir.mkdir()
+    cases = [
+        (["zeroshot", str(finished_run), "--task", "point_mass_maze_reach_top_left", "walker_walk"],
+         "belongs to domain 'walker'"),
+        (["report", str(finished_run), "--out", str(report_file)], "is a file"),
+        (["random-policy", "--domain", "point_mass_maze", "--output", str(output_dir), "--overwrite"],
+         "is a directory"),
+        (["analyze-exploration", str(finished_run), "--cell-size", "nan"], "positive finite"),
+    ]
+    before = sorted(p.relative_to(finished_run) for p in finished_run.rglob("*"))
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], (argv, err)
+    assert sorted(p.relative_to(finished_run) for p in finished_run.rglob("*")) == before
+    assert report_file.read_text() == "keep" and list(output_dir.iterdir()) == []

@@ -81,7 +81,7 @@ COORDINATES: dict[str, Coordinates] = {
 
 def coverage(points: np.ndarray, cell_size: float) -> int:
     """Distinct cells ``floor(p / cell_size)`` occupied by the rows of ``points`` (N, C)."""
-    if cell_size <= 0:
+    if not cell_size > 0:  # also NaN
         raise AnalysisError("the coverage cell size must be positive")
     points = np.asarray(points, dtype=float)
     if points.size == 0:
@@ -114,8 +114,8 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
         raise AnalysisError(f"no position coordinates are defined for domain {config.domain!r}")
     coords = COORDINATES[config.domain]
     cell = coords.cell_size if cell_size is None else float(cell_size)
-    if cell <= 0:
-        raise AnalysisError("--cell-size must be positive")
+    if not cell > 0 or cell == float("inf"):  # also NaN
+        raise AnalysisError(f"--cell-size must be a positive finite number, got {cell!r}")
     out_dir = run.path / "analysis"
     outputs = [out_dir / "exploration.png", out_dir / "exploration.json", out_dir / "exploration_positions.npz"]
     existing = [p for p in outputs if p.exists()]

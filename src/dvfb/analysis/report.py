@@ -65,6 +65,8 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
                 random_files: Sequence[str | os.PathLike] = (), overwrite: bool = False) -> Report:
     """Discover runs under ``paths`` and write the tables and curves into ``out_dir``."""
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise AnalysisError(f"--out {out_dir} is a file; give a directory for the report")
     runs = discover_runs(paths)
     zs = zeroshot_scores(runs.pretrain)
     ft = finetune_scores(runs.finetune)

@@ -19,6 +19,8 @@ def cmd_random_policy(args: argparse.Namespace) -> int:
     if args.episodes < 1:
         raise ConfigError(f"--episodes must be at least 1, got {args.episodes}")
     output = Path(args.output) if args.output else None
+    if output is not None and output.is_dir():
+        raise ConfigError(f"--output {output} is a directory; give a file name (e.g. {output / 'random.json'})")
     if output is not None and output.exists() and not args.overwrite:
         raise ConfigError(f"{output} exists; pass --overwrite to replace it")
     results = {}
