@@ -415,3 +415,29 @@ def test_more_bad_inputs_are_one_line_exit_2_with_nothing_written(finished_run, 
         assert len(err) == 1 and message in err[0], (argv, err)
     assert sorted(p.relative_to(finished_run) for p in finished_run.rglob("*")) == before
     assert report_file.read_text() == "keep" and list(output_dir.iterdir()) == []
+
+
+def test_reward_function_inference_without_a_replay_collects_states_and_says_so(finished_run, tmp_path):
+    import shutil
+
+    import numpy as np
+
+    import dvfb
+    from dvfb.cli.demo import bundled_demo_run
+    from dvfb.workflows.zeroshot import zeroshot
+
+    run = tmp_path / "no_replay"
+    shutil.copytree(finished_run, run)
+    shutil.rmtree(run / "checkpoints")  # as a shipped snapshot: no resume checkpoint, no replay
+    fn = tmp_path / "reward.py"
+    fn.write_text("def reward(next_obs):\n    return next_obs[:, 0]\n")
+    result = zeroshot(run, "point_mass_maze_reach_top_left", skill_source="reward_fn", reward_fn=f"{fn}:reward",
+                      inference={"steps": 1200, "random_action_steps": 200, "eval_episodes": 1}, progress=False)
+    assert "collected" in result["inference_info"]["states"] and np.isfinite(result["z"]).all()
+    with_replay = zeroshot(finished_run, "point_mass_maze_reach_top_left", skill_source="reward_fn",
+                           reward_fn=f"{fn}:reward", inference={"eval_episodes": 1}, overwrite=True, progress=False)
+    assert with_replay["inference_info"]["states"] == "the run's pre-training replay"
+    # The README's example shape on the bundled demo agent, which ships without a replay.
+    z = dvfb.load(bundled_demo_run()).infer_z(reward_fn=lambda next_obs: next_obs[:, 0], steps=1200,
+                                                random_action_steps=200)
+    assert z.shape == (50,) and torch.isfinite(z).all()

@@ -27,7 +27,7 @@ from dvfb.agents import Agent, get_spec
 from dvfb.config import merge, to_dict
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.protocols import SKILL_SOURCES, ZeroShotProtocol, zero_shot_protocol
-from dvfb.protocols.zero_shot import infer_task_vector
+from dvfb.protocols.zero_shot import collect_inference_data, infer_task_vector
 from dvfb.replay import ReplayBuffer
 from dvfb.runs import RunDir, check_writable, load_checkpoint, write_json_atomic
 from dvfb.training.monitor import Progress
@@ -66,21 +66,37 @@ def load_reward_fn(spec: str) -> Callable[[np.ndarray], np.ndarray]:
 
 
 def infer_from_reward_fn(agent: Agent, run: RunDir, config: PretrainConfig, reward_fn: Callable,
-                         protocol: ZeroShotProtocol) -> tuple[torch.Tensor, dict]:
-    """Apply ``reward_fn`` to the pre-training replay states and infer the skill from those rewards."""
+                         protocol: ZeroShotProtocol, rng: np.random.Generator | None = None) -> tuple[torch.Tensor, dict]:
+    """Apply ``reward_fn`` to states and infer the skill from those rewards.
+
+    The states are those of the run's pre-training replay (its newest resume checkpoint). A run
+    without one (a shipped snapshot, such as the bundled demo agent) collects them instead in the
+    domain's reward-free environment with the protocol's data-collection rule and budget
+    (``inference.steps``, uniform actions first). ``info["states"]`` says which was used.
+    """
+    episode_length = envs.TASKS[envs.pretrain_task(config.domain)].episode_length
     try:
         state = load_checkpoint(run, None, map_location="cpu")
-    except CheckpointError as exc:
-        raise CheckpointError(f"reward_fn inference needs the run's replay buffer (a resume checkpoint): {exc}") from exc
-    buffer = ReplayBuffer(config.replay_capacity, agent.obs_dim, agent.action_dim, agent.skill_dim,
-                          envs.TASKS[envs.pretrain_task(config.domain)].episode_length, device=agent.device)
-    buffer.load_state_dict(state["replay"])
+    except CheckpointError:
+        state = None
+    if state is not None:
+        buffer = ReplayBuffer(config.replay_capacity, agent.obs_dim, agent.action_dim, agent.skill_dim,
+                              episode_length, device=agent.device)
+        buffer.load_state_dict(state["replay"])
+        source = "the run's pre-training replay"
+    else:
+        c = protocol.config
+        env = envs.make(envs.pretrain_task(config.domain), seed=config.seed, reward_free=True)
+        rng = rng if rng is not None else np.random.default_rng(config.seed)
+        buffer = collect_inference_data(agent, env, c.steps, c.random_action_steps, rng, episode_length)
+        source = f"{c.steps} steps collected in {envs.pretrain_task(config.domain)} (the run has no replay)"
     data = buffer.transitions()
     rewards = np.asarray(reward_fn(data.next_obs.cpu().numpy()), dtype=np.float32).reshape(-1)
     if rewards.shape[0] != data.next_obs.shape[0]:
         raise ConfigError(f"reward function returned {rewards.shape[0]} rewards for {data.next_obs.shape[0]} states")
     reward_t = torch.as_tensor(rewards, device=agent.device)
-    return protocol.skill_from_samples(agent, data.obs, data.next_obs, reward_t)
+    skill, info = protocol.skill_from_samples(agent, data.obs, data.next_obs, reward_t)
+    return skill, {**info, "states": source}
 
 
 def result_path(run: RunDir, task: str, snapshot: int, final_snapshot: int) -> Path:
@@ -156,7 +172,7 @@ def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, pro
         if reward_fn is None:
             raise ConfigError("skill_source 'reward_fn' needs a reward function")
         fn = load_reward_fn(reward_fn) if isinstance(reward_fn, str) else reward_fn
-        return infer_from_reward_fn(agent, run, config, fn, protocol)
+        return infer_from_reward_fn(agent, run, config, fn, protocol, rng)
     if goal is None:
         raise ConfigError("skill_source 'goal' needs a goal observation")
     return protocol.skill_from_goal(agent, goal)
