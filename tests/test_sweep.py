@@ -271,3 +271,17 @@ def test_failing_cell_is_reported_with_its_log_and_the_rest_finish(tmp_path, slu
     assert main(["sweep", "status", str(sweep_dir)]) == 0
     status = capsys.readouterr().out
     assert f"{bad}" in status and "failed" in status and str(log) in status and "1 done, 1 failed" in status
+
+
+def test_a_second_sweep_on_the_same_directory_is_refused_before_it_touches_anything(tmp_path, capsys):
+    import os
+
+    from dvfb.runs import RunLock
+
+    sweep_dir = tmp_path / "sweep"
+    sweep_dir.mkdir()
+    with RunLock(sweep_dir):  # as a first sweep process holds it
+        code = main(sweep_args(sweep_dir, "debug", agents=("fb",), seeds=("0",), frames=400))
+    assert code == 2
+    assert f"in use by process {os.getpid()}" in capsys.readouterr().err
+    assert sorted(p.name for p in sweep_dir.iterdir()) == [".lock"]  # no state, no sweep.json

@@ -79,20 +79,6 @@ class SkillSpec:
             return self.low + (self.high - self.low) * u
         raise ValueError("a 'method' skill is drawn by its agent (Agent.sample_skill)")
 
-    def describe(self) -> str:
-        """One line for ``dvfb agents`` and the docs."""
-        if not self.has_skill:
-            return "no skill"
-        prior = {"one_hot": f"one-hot of {self.dim}", "sphere": f"{self.dim}-d on a sphere",
-                 "box": f"{self.dim}-d uniform in [{self.low:g}, {self.high:g}]",
-                 "method": f"{self.dim}-d, drawn by the method"}[self.kind]
-        rule = []
-        if self.every is not None:
-            rule.append(f"every {self.every} steps")
-        if self.at_episode_start:
-            rule.append("at episode starts")
-        return f"{prior}, resampled {' and '.join(rule) or 'never'}"
-
 
 NO_SKILL = SkillSpec()
 

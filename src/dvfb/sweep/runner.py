@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from dvfb.errors import ConfigError
-from dvfb.runs import read_json, write_json_atomic
+from dvfb.runs import LOCK_FILE, RunLock, read_json, write_json_atomic
 from dvfb.sweep import spec
 from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, alive_jobs
 from dvfb.sweep.spec import Cell, SweepConfig
@@ -30,19 +30,40 @@ def prepare(path: Path, requested: SweepConfig) -> SweepDir:
         if differ:
             raise ConfigError(f"{path} holds another sweep ({', '.join(differ)} differ from {sweep.config_path}); "
                               "choose another --dir, or repeat the original command to continue it")
-    elif path.exists() and any(path.iterdir()):
-        raise ConfigError(f"{path} exists and is not a sweep directory (no {spec.SWEEP_FILE}); choose another --dir")
+    else:
+        check_new_sweep_dir(path)
     write_json_atomic(sweep.config_path, spec.to_dict(requested))
     return sweep
 
 
+def check_new_sweep_dir(path: Path) -> None:
+    """A sweep starts in a new or empty directory (its own lock file aside), never in a file or in
+    another directory's contents."""
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"--dir {path} is a file; give a directory for the sweep")
+    if (path.exists() and not (path / spec.SWEEP_FILE).exists()
+            and any(p.name != LOCK_FILE for p in path.iterdir())):
+        raise ConfigError(f"{path} exists and is not a sweep directory (no {spec.SWEEP_FILE}); choose another --dir")
+
+
 def run(path: Path, config: SweepConfig) -> Outcome:
-    """Run every unit of the sweep that is not done yet, then write the reports."""
-    sweep = prepare(path, config)
-    outcome = EXECUTORS[config.executor](sweep, config)
-    if config.report:
-        write_reports(sweep, config)
-    return outcome
+    """Run every unit of the sweep that is not done yet, then write the reports.
+
+    One sweep process per directory (the run directories' lock, on the sweep directory): a second
+    one is refused naming the first's process id, before it reads or writes any state.
+    """
+    check_new_sweep_dir(path)  # before the lock file is written into it
+    lock = RunLock(path)
+    with lock:
+        try:
+            sweep = prepare(path, config)
+        except BaseException:
+            lock.remove_if_created()
+            raise
+        outcome = EXECUTORS[config.executor](sweep, config)
+        if config.report:
+            write_reports(sweep, config)
+        return outcome
 
 
 def report_groups(config: SweepConfig) -> dict[str, list[Cell]]:
