@@ -263,8 +263,8 @@ def test_failing_cell_is_reported_with_its_log_and_the_rest_finish(tmp_path, slu
     assert code == 1
     bad, good = "fb_walker_replay_capacity=500_s0", "fb_walker_replay_capacity=1000000_s0"
     log = sweep_dir / "logs" / bad / "pretrain.log"
-    assert f"FAILED {bad}/pretrain failed (exit status 2: dvfb pretrain: error: replay capacity (500) must be" in out
-    assert f"log: {log}" in out and "replay capacity (500)" in log.read_text()
+    assert f"FAILED {bad}/pretrain failed (exit status 2: dvfb pretrain: error: --replay-capacity 500 must be" in out
+    assert f"log: {log}" in out and "--replay-capacity 500 must be at least the episode length" in log.read_text()
     assert f"{bad}/zeroshot not run" in out
     assert len(list((sweep_dir / "runs" / good / "zeroshot").glob("*.json"))) == 4
     assert (sweep_dir / "report" / "replay_capacity=1000000" / "report.md").exists()
