@@ -432,7 +432,8 @@ def test_reward_function_inference_without_a_replay_collects_states_and_says_so(
     fn = tmp_path / "reward.py"
     fn.write_text("def reward(next_obs):\n    return next_obs[:, 0]\n")
     result = zeroshot(run, "point_mass_maze_reach_top_left", skill_source="reward_fn", reward_fn=f"{fn}:reward",
-                      inference={"steps": 1200, "random_action_steps": 200, "eval_episodes": 1}, progress=False)
+                      inference={"steps": 1200, "random_action_steps": 200, "eval_episodes": 1}, overwrite=True,
+                      progress=False)
     assert "collected" in result["inference_info"]["states"] and np.isfinite(result["z"]).all()
     with_replay = zeroshot(finished_run, "point_mass_maze_reach_top_left", skill_source="reward_fn",
                            reward_fn=f"{fn}:reward", inference={"eval_episodes": 1}, overwrite=True, progress=False)
