@@ -149,7 +149,7 @@ class Agent(nn.Module):
 
     def regress_skill(self, obs: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
         """The skill that best explains rewards of states by the method's own features (APS's
-        fine-tuning task regression)."""
+        fine-tuning task regression): a unit vector, or zeros when the rewards give no direction."""
         raise ConfigError(f"agent {self.name!r} has no task regression (--finetune.skill regressed)")
 
     def goal_widths(self) -> tuple[int, ...]:

@@ -100,11 +100,10 @@ class DDPGFinetuner(Finetuner):
         if c.skill == "regressed" and spec.has_skill and step >= c.regress_after and spec.due(step, episode_start):
             ddpg = self.agent.ddpg
             batch = ReplayNeeds(c.regress_samples, ddpg.discount, nstep=ddpg.nstep).sample(self.replay)
-            task = self.agent.regress_skill(batch.obs, batch.reward)
+            task = self.agent.regress_skill(batch.obs, batch.reward)  # a unit vector, or 0: no direction
             # Rewards with no direction (all zero so far, as sparse tasks start) keep the skill;
-            # torch.where, not an if: no host sync.
-            norm = task.norm()
-            self.skill = torch.where(norm > 1e-6, task / norm.clamp_min(1e-12), self.skill)  # evaluations use it
+            # torch.where, not an if: no host sync. Evaluations use the regressed skill.
+            self.skill = torch.where(task.norm() > 0.5, task, self.skill)
         return self.skill
 
     def replay_needs(self) -> ReplayNeeds:

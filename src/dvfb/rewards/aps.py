@@ -98,8 +98,10 @@ class APSReward(IntrinsicReward):
         ``obs`` are states ``s_t`` ``(N, O)``, ``reward`` their n-step rewards ``(N, 1)`` or
         ``(N,)``. The least-squares row ``x`` of ``R x = Phî`` is ``R^T Phî / R^T R``; its direction,
         the one returned, is that of the reward-weighted feature sum ``sum_i R_i phî(s_i)``. An
-        all-zero reward gives the zero vector (no direction; URLB would divide 0 by 0).
+        reward whose weighted sum has (numerically) no direction gives the zero vector, never a
+        non-unit one (URLB would divide 0 by 0); without a host sync.
         """
         features = self.phi(obs, run)
-        weighted = reward.reshape(1, -1).to(features.dtype) @ features  # (1, d)
-        return F_nn.normalize(weighted, dim=-1)[0]
+        weighted = (reward.reshape(1, -1).to(features.dtype) @ features)[0]  # (d,)
+        norm = weighted.norm()
+        return torch.where(norm > 1e-12, weighted / norm.clamp_min(1e-12), torch.zeros_like(weighted))
