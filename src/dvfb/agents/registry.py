@@ -27,7 +27,8 @@ class AgentSpec:
     preset name to overrides of the run config (missing presets mean the spec's values);
     ``defaults`` overrides the run config's fields for this method. ``label(run_config,
     finetune_config)`` names the method in reports (variants such as ``dvfb_wo_ce``); by default
-    the agent's name. ``column`` orders the report's columns. ``moved_fields`` maps a top-level
+    the agent's name. ``column`` orders the report's columns; ``task_field`` names the config field
+    holding the task of a method that learns from its reward (the supervised reference). ``moved_fields`` maps a top-level
     field of configs written by older versions to where it lives now (``"update_z_every":
     "fb.skill_every"``; None: dropped), so that old run directories still load.
     """
@@ -44,6 +45,23 @@ class AgentSpec:
     label: Callable[[Any, Any], str] | None = None
     column: int = 100  # position of the method's columns in report tables (ties: registry order)
     moved_fields: dict[str, str | None] = field(default_factory=dict)
+    # A method that learns from a task's reward (the supervised reference): the dotted run-config
+    # field that names the task. None for the reward-free methods. Such a run trains in the
+    # task's environment and is evaluated on that task only; a sweep gives it a cell per task.
+    task_field: str | None = None
+
+    def task_of(self, run_config: Any) -> str | None:
+        """The task a run of this method learns from, or None (reward-free pre-training)."""
+        if self.task_field is None:
+            return None
+        value = run_config
+        for part in self.task_field.split("."):
+            value = config_field(value, part)
+        if not value:  # empty: the domain's pre-training task
+            from dvfb.envs import pretrain_task
+
+            return pretrain_task(config_field(run_config, "domain"))
+        return value
 
     def method_label(self, run_config: Any, finetune_config: Any = None) -> str:
         """The report's name for a run (configs as dataclasses or dicts)."""

@@ -1,5 +1,5 @@
 """The ``dvfb`` command line, one module per command: tasks and agents (:mod:`~dvfb.cli.info`), pretrain,
-zeroshot, finetune, random-policy, demo, sweep, report, the analyses (analyze-value,
+zeroshot, finetune, supervised (the reference), random-policy, demo, sweep, report, the analyses (analyze-value,
 analyze-exploration) and video.
 
 Every option of the typed run configuration is a flag (nested fields as ``--fb.hidden-dim``), shown
@@ -15,12 +15,12 @@ import logging
 import sys
 
 from dvfb import __version__
-from dvfb.cli import analyze, demo, finetune, info, pretrain, random_policy, report, sweep, video, zeroshot
+from dvfb.cli import analyze, demo, finetune, info, pretrain, random_policy, report, supervised, sweep, video, zeroshot
 from dvfb.cli.common import Formatter
 from dvfb.errors import DvfbError, RunInterrupted
 
 # The order of `dvfb --help`.
-COMMANDS = (info, pretrain, zeroshot, finetune, random_policy, demo, sweep, report, analyze, video)
+COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo, sweep, report, analyze, video)
 
 
 def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:

@@ -8,17 +8,14 @@ from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_
 
 
 def cmd_zeroshot(args: argparse.Namespace) -> int:
-    from dvfb import envs
     from dvfb.workflows.snapshots import open_pretrained_run
     from dvfb.workflows.zeroshot import zeroshot
 
     _run, config = open_pretrained_run(args.run)
-    tasks = envs.tasks_of_domain(config.domain) if args.task == ["all"] else args.task
-    # Every task is checked before the first is run: a bad second name must not leave a first result.
-    from dvfb.workflows.resources import check_task_in_domain
+    from dvfb.workflows.resources import evaluation_tasks
 
-    for task in tasks:
-        check_task_in_domain(task, config.domain)
+    # Every task is checked before the first is run: a bad second name must not leave a first result.
+    tasks = evaluation_tasks(config, args.task)
     inference = protocol_overrides(args, "inference")
     goal = parse_goal(args.goal) if args.goal else None
     rows = []

@@ -213,10 +213,15 @@ def normalise_overrides(config: SweepConfig, raw: dict[str, Any], from_text: boo
     where a list of lists is) or from the command line (``from_text``: comma-separated text, an
     axis unless the option is list-typed).
     """
+    from dvfb.agents import get_spec
+
     classes = [_run_config_class(agent) for agent in config.agents]
+    task_fields = {get_spec(agent).task_field for agent in config.agents} - {None}
     out: dict[str, list] = {}
     for given_key, value in raw.items():
         key = canonical_key(given_key)
+        if key in task_fields:
+            raise ConfigError(f"{flag_of(key)} is set by the sweep itself: a supervised cell per zero-shot task")
         if key.split(".")[0] in CELL_FIELDS:
             raise ConfigError(f"{flag_of(key)} is set by the sweep itself; use its agents, domains, seeds, "
                               "preset or torch_threads")
@@ -247,11 +252,18 @@ def _tasks(config: SweepConfig, domain: str, requested: list[str]) -> list[str]:
 
 
 def zeroshot_tasks(config: SweepConfig, cell: Cell) -> list[str]:
-    return _tasks(config, cell.domain, config.zeroshot_tasks) if "zeroshot" in config.phases else []
+    """The cell's evaluation tasks; a supervised cell is evaluated on its own task."""
+    if "zeroshot" not in config.phases:
+        return []
+    task = cell_task(cell)
+    return [task] if task is not None else _tasks(config, cell.domain, config.zeroshot_tasks)
 
 
 def finetune_tasks(config: SweepConfig, cell: Cell) -> list[str]:
-    return _tasks(config, cell.domain, config.finetune_tasks) if "finetune" in config.phases else []
+    """The cell's fine-tuning tasks; none for a supervised cell (it trained on its task already)."""
+    if "finetune" not in config.phases or cell_task(cell) is not None:
+        return []
+    return _tasks(config, cell.domain, config.finetune_tasks)
 
 
 def check(config: SweepConfig) -> None:
@@ -294,18 +306,35 @@ def check(config: SweepConfig) -> None:
 
 def cells(config: SweepConfig) -> list[Cell]:
     """The grid, in the order agents, domains, swept values, seeds."""
+    from dvfb.agents import get_spec
+
     out = []
     for agent in config.agents:
         cls = _run_config_class(agent)
         keys = [k for k in config.overrides if field_type(cls, k) is not None]
         axes = tuple(k for k in keys if len(config.overrides[k]) > 1)
+        task_field = get_spec(agent).task_field
         for domain in config.domains:
-            for combination in itertools.product(*(config.overrides[k] for k in keys)):
-                values = tuple(zip(keys, combination))
-                swept = "".join(f"_{k}={_name_part(v)}" for k, v in values if k in axes)
-                for seed in config.seeds:
-                    out.append(Cell(f"{agent}_{domain}{swept}_s{seed}", agent, domain, seed, values, axes))
+            # A method that learns one task's reward (the supervised reference) gets a cell per
+            # task: the zero-shot tasks of the sweep, each trained with the cells' budget.
+            tasks = _tasks(config, domain, config.zeroshot_tasks) if task_field is not None else [None]
+            for task in tasks:
+                own = ((task_field, task),) if task is not None else ()
+                place = task if task is not None else domain
+                for combination in itertools.product(*(config.overrides[k] for k in keys)):
+                    values = tuple(zip(keys, combination)) + own
+                    swept = "".join(f"_{k}={_name_part(v)}" for k, v in values if k in axes)
+                    for seed in config.seeds:
+                        out.append(Cell(f"{agent}_{place}{swept}_s{seed}", agent, domain, seed, values, axes))
     return out
+
+
+def cell_task(cell: Cell) -> str | None:
+    """The task a cell's method learns from (the supervised reference), or None."""
+    from dvfb.agents import get_spec
+
+    field_name = get_spec(cell.agent).task_field
+    return dict(cell.values).get(field_name) if field_name is not None else None
 
 
 def cell_config(config: SweepConfig, cell: Cell):

@@ -10,7 +10,9 @@ The loop (:mod:`dvfb.training.loop`, shared with fine-tuning), per environment s
 * if ``t >= seed_frames`` and ``t % update_every == 0``: one agent update on a batch drawn as the
   agent's :class:`~dvfb.agents.base.ReplayNeeds` say (before stepping, as the authors' code does);
 * step the environment, store ``(a, task reward, discount, s', skill)``. The task reward is stored
-  for logging only: the reward-free update never reads it (docs/tasks.md §3).
+  for logging only: the reward-free update never reads it (docs/tasks.md §3). The supervised
+  reference (docs/methods.md, "Supervised reference") is the one method that trains on it: its
+  environment is its task's.
 
 The loop talks to the method only through the :class:`~dvfb.agents.base.Agent` interface; this
 module adds the method's skill rule, the logging, the snapshots and what a checkpoint holds.
@@ -32,7 +34,7 @@ import numpy as np
 import torch
 
 from dvfb import envs
-from dvfb.agents import make_agent
+from dvfb.agents import get_spec, make_agent
 from dvfb.config import to_dict
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.replay import ReplayBuffer
@@ -51,7 +53,7 @@ from dvfb.training import loop
 from dvfb.training.loop import EpisodeState, OnlineCollector
 from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, notify
 from dvfb.training.seeding import check_resume_format, restore_rng_state, rng_state, run_generator, seed_everything
-from dvfb.workflows.resources import check_memory, check_replay, learner_state_bytes, setup_torch
+from dvfb.workflows.resources import check_memory, check_replay, check_task_in_domain, learner_state_bytes, setup_torch
 from dvfb.workflows.snapshots import snapshot_name, snapshot_state
 from dvfb.workflows.config import PretrainConfig, load_run_config
 
@@ -97,13 +99,18 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
     envs.check_domain(config.domain)
     if resume and not (run_path / "config.json").is_file():
         RunDir.open(run_path)  # names what is missing
+    # The supervised reference learns from its task's reward; every other method is reward-free
+    # and its environment records the domain's default task reward for logging only.
+    trained_task = get_spec(config.agent).task_of(config)
+    if trained_task is not None:
+        check_task_in_domain(trained_task, config.domain)
     device = setup_torch(config)
     rng = seed_everything(config.seed)
-    env = envs.make(config.domain, seed=config.seed, reward_free=True)
+    env = envs.make(trained_task or config.domain, seed=config.seed, reward_free=True)
     obs_dim = env.observation_space.shape[0]
     action_dim = env.action_space.shape[0]
     agent = make_agent(config.agent, obs_dim, action_dim, config, device)
-    episode_length = envs.TASKS[envs.pretrain_task(config.domain)].episode_length
+    episode_length = envs.TASKS[trained_task or envs.pretrain_task(config.domain)].episode_length
     check_replay(config.replay_capacity, "--replay-capacity", agent.replay_needs(), episode_length, config.domain)
     check_memory({"replay": ReplayBuffer.estimate_nbytes(config.replay_capacity, obs_dim, action_dim, agent.skill_dim,
                                                          episode_length),

@@ -69,6 +69,23 @@ def check_task_in_domain(task: str, domain: str) -> None:
                           f"on {domain!r}; valid tasks: {', '.join(envs.tasks_of_domain(domain))}")
 
 
+def evaluation_tasks(config, requested: list[str]) -> list[str]:
+    """The tasks a run is evaluated on: ``requested`` (``["all"]``: every task of its domain),
+    each checked. A run that learned one task's reward (the supervised reference) is evaluated on
+    that task only: its policy on another task would be read as a reference it is not."""
+    from dvfb.agents import get_spec
+
+    trained = get_spec(config.agent).task_of(config)
+    if requested == ["all"]:
+        return [trained] if trained is not None else list(envs.tasks_of_domain(config.domain))
+    for task in requested:
+        check_task_in_domain(task, config.domain)
+        if trained is not None and task != trained:
+            raise ConfigError(f"this {config.agent} run learned {trained!r}; it is evaluated on that task only, "
+                              f"not {task!r}")
+    return list(requested)
+
+
 def check_replay(capacity: int, capacity_flag: str, needs, episode_length: int, domain: str) -> None:
     """Before anything is created: the replay must hold a whole episode, and the batches the learner
     asks for (n-step successors, s_{t+2}) must exist within one episode."""

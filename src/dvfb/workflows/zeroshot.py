@@ -32,7 +32,7 @@ from dvfb.replay import ReplayBuffer
 from dvfb.runs import RunDir, check_writable, load_checkpoint, write_json_atomic
 from dvfb.training.monitor import Progress
 from dvfb.training.seeding import seed_everything
-from dvfb.workflows.resources import check_task_in_domain
+from dvfb.workflows.resources import evaluation_tasks
 from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 from dvfb.training.seeding import run_generator
 from dvfb.workflows.config import PretrainConfig
@@ -117,7 +117,7 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     run, config = open_pretrained_run(run_path)
     protocol = run_protocol(config, inference)
     protocol.check_source(skill_source, config.agent)
-    check_task_in_domain(task, config.domain)
+    evaluation_tasks(config, [task])
     agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
     final = max(config.frames, snapshot)
     out = result_path(run, task, snapshot, final)
