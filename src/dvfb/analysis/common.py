@@ -219,6 +219,12 @@ class Score:
     value: float
     source: Path
     frames: int | None = None  # fine-tuning frames of the point (Table 2)
+    episodes: int | None = None  # evaluation episodes behind the value
+
+
+def _episodes(data: dict) -> int | None:
+    returns = data.get("returns")
+    return len(returns) if isinstance(returns, list) else None
 
 
 def read_json(path: Path) -> dict:
@@ -264,7 +270,7 @@ def zeroshot_scores(runs: Iterable[PretrainRun], metric: str = RETURN) -> list[S
                 continue
             task = data.get("task", path.stem)
             scores.append(Score("zeroshot", run.method, run.config.domain, task, run.config.seed,
-                                _number(path, data, metric), path))
+                                _number(path, data, metric), path, episodes=_episodes(data)))
     return scores
 
 
@@ -286,7 +292,7 @@ def finetune_scores(runs: Iterable[FinetuneRun], metric: str = RETURN) -> list[S
             continue
         scores.append(Score("finetune", run.method, run.config.domain, run.config.task,
                             (run.pretrain_seed, run.config.seed), _number(path, last, metric), path,
-                            frames=int(_number(path, last, "frames"))))
+                            frames=int(_number(path, last, "frames")), episodes=_episodes(last)))
     return scores
 
 
@@ -307,7 +313,7 @@ def random_scores(files: Iterable[str | os.PathLike], metric: str = RETURN) -> l
             if not _has(result, metric):
                 continue
             scores.append(Score("random", "random", data["domain"], task, data.get("seed", 0),
-                                _number(path, result, metric), path))
+                                _number(path, result, metric), path, episodes=_episodes(result)))
     return scores
 
 

@@ -1,9 +1,11 @@
 """Fine-tuning curves (the paper's fine-tuning figures): return vs fine-tuning frames.
 
 One PNG per task, one line per method (named by :func:`dvfb.analysis.common.method_name`): the
-mean over seeds of each ``curve.json`` evaluation, with a band of ± the sample std over seeds
-(ddof = 1), or ± the standard error with ``spread="se"``. Seeds need not share every evaluation
-point: each point averages the seeds that have it. Figures are drawn with matplotlib's
+mean over seeds of each ``curve.json`` evaluation, with a band: by default (``spread="ci"``) the
+95% percentile interval of a seeded bootstrap of that mean (docs/reports.md), drawn only where
+at least :data:`~dvfb.analysis.aggregate.MIN_RUNS_FOR_CI` seeds have the point; or ± the sample
+std over seeds (ddof = 1, ``"std"``) or the standard error (``"se"``). Seeds need not share every
+evaluation point: each point averages the seeds that have it. Figures are drawn with matplotlib's
 object-oriented API on an Agg canvas (no pyplot state, no display needed).
 """
 
@@ -17,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dvfb.analysis.aggregate import mean_interval
 from dvfb.analysis.common import AnalysisError, FinetuneRun, read_json, method_sort_key
 from dvfb.analysis.tables import STD_DDOF
 
@@ -25,8 +28,10 @@ from dvfb.analysis.tables import STD_DDOF
 class CurveBand:
     frames: np.ndarray
     mean: np.ndarray
-    spread: np.ndarray  # NaN where only one seed has the point
+    spread: np.ndarray  # NaN where only one seed has the point (and for "ci" bands)
     n: np.ndarray
+    low: np.ndarray | None = None  # the band's edges (NaN: no band at the point)
+    high: np.ndarray | None = None
 
 
 def load_curves(runs: Sequence[FinetuneRun]) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
@@ -48,31 +53,41 @@ def load_curves(runs: Sequence[FinetuneRun]) -> dict[str, dict[str, list[tuple[n
     return curves
 
 
-def aggregate(curves: Sequence[tuple[np.ndarray, np.ndarray]], spread: str = "std") -> CurveBand:
-    """Mean and spread across runs at every frame count any run evaluated at."""
+def aggregate(curves: Sequence[tuple[np.ndarray, np.ndarray]], spread: str = "std",
+              bootstrap_seed: int = 0) -> CurveBand:
+    """Mean and spread across runs at every frame count any run evaluated at. With
+    ``spread="ci"`` the band is the bootstrap interval of the mean (``low``/``high``), NaN where
+    fewer than MIN_RUNS_FOR_CI runs have the point."""
     frames = np.unique(np.concatenate([f for f, _ in curves]))
-    mean, band, count = [], [], []
+    mean, band, count, low, high = [], [], [], [], []
     for x in frames:
         values = np.array([r[f == x][0] for f, r in curves if np.any(f == x)])
         mean.append(values.mean())
         count.append(values.size)
-        if values.size > 1:
+        if spread == "ci":
+            estimate = mean_interval(values, seed=bootstrap_seed)
+            low.append(np.nan if estimate.low is None else estimate.low)
+            high.append(np.nan if estimate.high is None else estimate.high)
+            band.append(np.nan)
+        elif values.size > 1:
             std = values.std(ddof=STD_DDOF)
             band.append(std / math.sqrt(values.size) if spread == "se" else std)
         else:
             band.append(float("nan"))
-    return CurveBand(frames, np.array(mean), np.array(band), np.array(count))
+    mean_arr = np.array(mean)
+    if spread != "ci":
+        low, high = mean_arr - np.array(band), mean_arr + np.array(band)
+    return CurveBand(frames, mean_arr, np.array(band), np.array(count), np.asarray(low, float), np.asarray(high, float))
 
 
-def _plot_task(ax, task: str, by_method: dict[str, list], spread: str) -> None:
+def _plot_task(ax, task: str, by_method: dict[str, list], spread: str, seed: int = 0) -> None:
     for method in sorted(by_method, key=method_sort_key):
-        band = aggregate(by_method[method], spread)
+        band = aggregate(by_method[method], spread, seed)
         seeds = len(by_method[method])
         (line,) = ax.plot(band.frames, band.mean, marker="o", markersize=3, label=f"{method} ({seeds} seed{'s' * (seeds != 1)})")
-        ok = ~np.isnan(band.spread)
+        ok = ~np.isnan(band.low)
         if ok.any():
-            ax.fill_between(band.frames[ok], (band.mean - band.spread)[ok], (band.mean + band.spread)[ok],
-                            color=line.get_color(), alpha=0.2, linewidth=0)
+            ax.fill_between(band.frames[ok], band.low[ok], band.high[ok], color=line.get_color(), alpha=0.2, linewidth=0)
     ax.set_title(task)
     ax.set_xlabel("fine-tuning frames")
     ax.set_ylabel("episode return")
@@ -80,7 +95,7 @@ def _plot_task(ax, task: str, by_method: dict[str, list], spread: str) -> None:
     ax.legend(fontsize=8)
 
 
-def plot_curves(curves: dict[str, dict[str, list]], out_dir: Path, spread: str = "std") -> list[Path]:
+def plot_curves(curves: dict[str, dict[str, list]], out_dir: Path, spread: str = "ci", seed: int = 0) -> list[Path]:
     """``finetune_<task>.png`` per task and ``finetune_all.png`` (a grid of every task)."""
     from matplotlib.figure import Figure
 
@@ -88,7 +103,7 @@ def plot_curves(curves: dict[str, dict[str, list]], out_dir: Path, spread: str =
     written = []
     for task in sorted(curves):
         fig = Figure(figsize=(5, 3.6), dpi=100, layout="constrained")
-        _plot_task(fig.add_subplot(), task, curves[task], spread)
+        _plot_task(fig.add_subplot(), task, curves[task], spread, seed)
         path = out_dir / f"finetune_{task}.png"
         fig.savefig(path)
         written.append(path)
@@ -97,10 +112,10 @@ def plot_curves(curves: dict[str, dict[str, list]], out_dir: Path, spread: str =
         ncols = min(4, len(tasks))
         nrows = math.ceil(len(tasks) / ncols)
         fig = Figure(figsize=(4.5 * ncols, 3.4 * nrows), dpi=100, layout="constrained")
-        what = "standard error" if spread == "se" else "std"
-        fig.suptitle(f"Fine-tuning: mean episode return over seeds ± {what}")
+        what = {"se": "± standard error", "std": "± std", "ci": "with 95% bootstrap intervals (3+ seeds)"}[spread]
+        fig.suptitle(f"Fine-tuning: mean episode return over seeds {what}")
         for i, task in enumerate(tasks):
-            _plot_task(fig.add_subplot(nrows, ncols, i + 1), task, curves[task], spread)
+            _plot_task(fig.add_subplot(nrows, ncols, i + 1), task, curves[task], spread, seed)
         path = out_dir / "finetune_all.png"
         fig.savefig(path)
         written.append(path)

@@ -9,7 +9,12 @@ and optional random-policy files. Outputs, in ``out_dir``:
 * ``table2_finetune.md/.csv`` and ``table2_finetune_normalised.csv`` (when fine-tuning runs exist);
 * ``table6_success.md`` with ``table6_success_zeroshot.csv`` and ``table6_success_finetune.csv``
   (when results carry success rates: the Meta-World tasks, docs/tasks.md §4.6);
-* ``curves/finetune_<task>.png`` and ``curves/finetune_all.png`` (when fine-tuning runs exist).
+* ``curves/finetune_<task>.png`` and ``curves/finetune_all.png`` (when fine-tuning runs exist);
+* the normalised tables of every normaliser the inputs allow (``table1_zeroshot_supervised.csv``,
+  ``table1_zeroshot_minmax.csv``, likewise for Table 2; :mod:`dvfb.analysis.normalise`);
+* ``aggregates_<kind>.md/.csv`` and ``profiles_<kind>.png`` for ``kind`` zeroshot and finetune:
+  IQM, mean, median, optimality gap and the probability of improvement with stratified bootstrap
+  intervals, and performance profiles (:mod:`dvfb.analysis.aggregate_report`).
 """
 
 from __future__ import annotations
@@ -29,7 +34,10 @@ from dvfb.analysis.common import (
     random_scores,
     zeroshot_scores,
 )
+from dvfb.analysis import aggregate_report
+from dvfb.analysis.aggregate_report import BootstrapConfig
 from dvfb.analysis.curves import load_curves, plot_curves
+from dvfb.analysis.normalise import CHOICES, NORMALISERS
 from dvfb.analysis.tables import Table, build_table, success_markdown_section, table_markdown_section, to_csv
 
 TABLE1 = "Table 1: zero-shot"
@@ -47,6 +55,7 @@ class Report:
     success_finetune: Table | None = None
     files: list[Path] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    aggregates: dict[str, aggregate_report.Aggregates] = field(default_factory=dict)  # kind -> aggregates
 
 
 def _outputs(out_dir: Path, has_zeroshot: bool, has_finetune: bool, success: tuple[bool, bool]) -> list[Path]:
@@ -62,11 +71,23 @@ def _outputs(out_dir: Path, has_zeroshot: bool, has_finetune: bool, success: tup
 
 
 def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, *, spread: str = "std",
-                random_files: Sequence[str | os.PathLike] = (), overwrite: bool = False) -> Report:
-    """Discover runs under ``paths`` and write the tables and curves into ``out_dir``."""
+                random_files: Sequence[str | os.PathLike] = (), overwrite: bool = False,
+                normaliser: str = "auto", bootstrap: BootstrapConfig | None = None,
+                curve_band: str = "ci") -> Report:
+    """Discover runs under ``paths`` and write the tables, aggregates and curves into ``out_dir``.
+
+    ``normaliser`` chooses the scores of the aggregates (docs/reports.md): ``auto`` the first of
+    min-max, supervised and expert that covers every task; a named one must cover them (else an
+    AnalysisError naming what is missing); ``none`` raw returns.
+    """
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise AnalysisError(f"--out {out_dir} is a file; give a directory for the report")
+    if normaliser not in CHOICES:
+        raise AnalysisError(f"--normaliser must be one of {', '.join(CHOICES)}, got {normaliser!r}")
+    bootstrap = bootstrap or BootstrapConfig()
+    if bootstrap.samples < 100 or not 0 < bootstrap.confidence < 1:
+        raise AnalysisError("--bootstrap-samples must be at least 100 and --confidence within (0, 1)")
     runs = discover_runs(paths)
     zs = zeroshot_scores(runs.pretrain)
     ft = finetune_scores(runs.finetune)
@@ -80,8 +101,17 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
                             f"{', '.join(map(str, paths))}; run `dvfb zeroshot` or `dvfb finetune` first")
     report = Report(out_dir)
     curves = load_curves(runs.finetune) if ft else {}
+    # Everything is computed before anything is written: a missing reference fails with no file.
+    for kind, scores, title in (("zeroshot", [*zs, *rnd], TABLE1), ("finetune", ft, TABLE2)):
+        result = aggregate_report.compute(scores, kind, title, normaliser, bootstrap) if scores else None
+        if result is not None and result.scopes:
+            report.aggregates[kind] = result
     planned = _outputs(out_dir, bool(zs or rnd), bool(ft), (bool(zs_success or rnd_success), bool(ft_success)))
     planned += [out_dir / "curves" / f"finetune_{task}.png" for task in curves]
+    for kind in report.aggregates:
+        planned += [out_dir / f"aggregates_{kind}.md", out_dir / f"aggregates_{kind}.csv", out_dir / f"profiles_{kind}.png"]
+    planned += [out_dir / f"{stem}_{name}.csv" for stem in ("table1_zeroshot", "table2_finetune")
+                for name in NORMALISERS[1:]]
     existing = [p for p in planned if p.exists()]
     if existing and not overwrite:
         raise AnalysisError(f"{existing[0]} exists; pass --overwrite to replace the report in {out_dir}")
@@ -95,6 +125,7 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
         _write(out_dir / "table1_zeroshot.md", section + "\n", report)
         _write(out_dir / "table1_zeroshot.csv", to_csv(report.zeroshot), report)
         _write(out_dir / "table1_zeroshot_normalised.csv", to_csv(report.zeroshot, normalised=True), report)
+        _write_normalised(out_dir, "table1_zeroshot", report.zeroshot, report)
         sections += [section, ""]
     if ft:
         report.finetune = build_table(ft, TABLE2, spread)
@@ -112,12 +143,21 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
         _write(out_dir / "table2_finetune.md", section + "\n", report)
         _write(out_dir / "table2_finetune.csv", to_csv(report.finetune), report)
         _write(out_dir / "table2_finetune_normalised.csv", to_csv(report.finetune, normalised=True), report)
+        _write_normalised(out_dir, "table2_finetune", report.finetune, report)
         sections += [section, ""]
-        pngs = plot_curves(curves, out_dir / "curves", spread)
+        pngs = plot_curves(curves, out_dir / "curves", curve_band, bootstrap.seed)
         report.files += pngs
         sections += ["## Fine-tuning curves", ""]
         sections += [f"![{p.stem}](curves/{p.name})" for p in pngs]
         sections.append("")
+    for kind, result in report.aggregates.items():
+        figure = aggregate_report.plot_profiles(result, out_dir / f"profiles_{kind}.png", bootstrap.confidence)
+        report.files.append(figure)
+        section = aggregate_report.markdown(result, bootstrap, figure.name)
+        _write(out_dir / f"aggregates_{kind}.md", section + "\n", report)
+        _write(out_dir / f"aggregates_{kind}.csv", aggregate_report.to_csv(result), report)
+        report.notes += result.notes
+        sections += [section, ""]
     success_sections = []
     if zs_success or rnd_success:
         report.success_zeroshot = build_table([*zs_success, *rnd_success], TABLE6_ZEROSHOT, spread, digits=2)
@@ -134,6 +174,12 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
         sections += ["## Notes", ""] + [f"- {note}" for note in report.notes] + [""]
     _write(out_dir / "report.md", "\n".join(sections), report)
     return report
+
+
+def _write_normalised(out_dir: Path, stem: str, table, report: Report) -> None:
+    for name in NORMALISERS[1:]:
+        if table.normalised_by.get(name):
+            _write(out_dir / f"{stem}_{name}.csv", to_csv(table, normalised=name), report)
 
 
 def _write(path: Path, text: str, report: Report) -> None:

@@ -26,21 +26,18 @@ import io
 import math
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
 from dvfb.analysis.common import Score, method_sort_key
+from dvfb.analysis.normalise import EXPERT_RETURNS, NORMALISERS, Normaliser, normalisers as available_normalisers
 
 GAP = "–"
 SPREADS = ("std", "se")
 STD_DDOF = 1
 
-# URLB expert returns (Laskin et al., 2021), used by the paper for its normalised scores.
-EXPERT_RETURNS: dict[str, float] = {
-    "walker_stand": 984.0, "walker_walk": 971.0, "walker_run": 796.0, "walker_flip": 799.0,
-    "quadruped_stand": 920.0, "quadruped_walk": 866.0, "quadruped_jump": 888.0, "quadruped_run": 888.0,
-}
 AVERAGE = "average"
 
 
@@ -77,17 +74,29 @@ class Table:
     rows: list[tuple[str, str]]
     columns: list[str]
     cells: dict[tuple[str, str], Cell]  # (task or f"{domain}/average", method) -> Cell
-    normalised: dict[tuple[str, str], Cell]
+    normalised_by: dict[str, dict[tuple[str, str], Cell]]  # normaliser name -> cells (docs/reports.md)
     spread: str = "std"
     digits: int = 1  # decimals shown in markdown (success rates: 2)
+    normalisers: dict[str, Normaliser] = dataclasses.field(default_factory=dict)
+    episodes: dict[str, list[int]] = dataclasses.field(default_factory=dict)  # method -> episodes per result
+
+    @property
+    def normalised(self) -> dict[tuple[str, str], Cell]:
+        """The expert-normalised cells (the paper's normalised scores)."""
+        return self.normalised_by.get("expert", {})
 
     @staticmethod
     def row_key(domain: str, task: str) -> str:
         return f"{domain}/{AVERAGE}" if task == AVERAGE else task
 
-    def cell(self, domain: str, task: str, method: str, normalised: bool = False) -> Cell | None:
-        cells = self.normalised if normalised else self.cells
-        return cells.get((self.row_key(domain, task), method))
+    def cell(self, domain: str, task: str, method: str, normalised: bool | str = False) -> Cell | None:
+        return self.cells_of(normalised).get((self.row_key(domain, task), method))
+
+    def cells_of(self, normalised: bool | str = False) -> dict[tuple[str, str], Cell]:
+        """Raw cells (False), expert-normalised ones (True) or those of a named normaliser."""
+        if normalised is False:
+            return self.cells
+        return self.normalised_by.get("expert" if normalised is True else normalised, {})
 
 
 def _domains_and_tasks(scores: Iterable[Score]) -> list[tuple[str, list[str]]]:
@@ -106,17 +115,23 @@ def _domains_and_tasks(scores: Iterable[Score]) -> list[tuple[str, list[str]]]:
     return result
 
 
-def build_table(scores: Sequence[Score], title: str, spread: str = "std", digits: int = 1) -> Table:
-    """Aggregate scores (already checked for duplicates) into a :class:`Table`."""
+def build_table(scores: Sequence[Score], title: str, spread: str = "std", digits: int = 1,
+                normalisers: dict[str, Normaliser] | None = None) -> Table:
+    """Aggregate scores (already checked for duplicates) into a :class:`Table`, with a normalised
+    variant per normaliser (default: those the scores allow, :func:`dvfb.analysis.normalise.normalisers`)."""
     if spread not in SPREADS:
         raise ValueError(f"spread must be one of {SPREADS}")
+    normalisers = available_normalisers(scores) if normalisers is None else normalisers
     per_cell: dict[tuple[str, str], dict] = defaultdict(dict)  # (task, method) -> {seed: value}
+    episodes: dict[str, set[int]] = defaultdict(set)
     for score in scores:
         per_cell[(score.task, score.method)][score.seed] = score.value
+        if score.episodes is not None:
+            episodes[score.method].add(score.episodes)
     columns = sorted({s.method for s in scores}, key=method_sort_key)
     rows: list[tuple[str, str]] = []
     cells: dict[tuple[str, str], Cell] = {}
-    normalised: dict[tuple[str, str], Cell] = {}
+    normalised: dict[str, dict[tuple[str, str], Cell]] = {name: {} for name in normalisers}
     for domain, tasks in _domains_and_tasks(scores):
         rows.extend((domain, task) for task in tasks)
         rows.append((domain, AVERAGE))
@@ -126,14 +141,17 @@ def build_table(scores: Sequence[Score], title: str, spread: str = "std", digits
                 if by_seed[task]:
                     values = list(by_seed[task].values())
                     cells[(task, method)] = summarise(values)
-                    if task in EXPERT_RETURNS:
-                        normalised[(task, method)] = summarise([100.0 * v / EXPERT_RETURNS[task] for v in values])
+                    for name, norm in normalisers.items():
+                        if norm.covers(task):
+                            normalised[name][(task, method)] = summarise([norm(task, v) for v in values])
             if all(by_seed[task] for task in tasks):
                 key = (f"{domain}/{AVERAGE}", method)
                 cells[key] = _average(tasks, by_seed, lambda task, v: v)
-                if all(task in EXPERT_RETURNS for task in tasks):
-                    normalised[key] = _average(tasks, by_seed, lambda task, v: 100.0 * v / EXPERT_RETURNS[task])
-    return Table(title, rows, columns, cells, normalised, spread, digits)
+                for name, norm in normalisers.items():
+                    if all(norm.covers(task) for task in tasks):
+                        normalised[name][key] = _average(tasks, by_seed, norm)
+    return Table(title, rows, columns, cells, normalised, spread, digits, dict(normalisers),
+                 {m: sorted(e) for m, e in episodes.items()})
 
 
 def _average(tasks: list[str], by_seed: dict[str, dict], transform) -> Cell:
@@ -164,9 +182,9 @@ def _spread_words(spread: str) -> str:
             else "standard deviation over seeds (ddof=1)")
 
 
-def to_markdown(table: Table, normalised: bool = False) -> str:
+def to_markdown(table: Table, normalised: bool | str = False) -> str:
     """One markdown table: domain | task | method columns; gaps as ``–``."""
-    cells = table.normalised if normalised else table.cells
+    cells = table.cells_of(normalised)
     header = ["domain", "task", *table.columns]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---", "---"] + ["---:"] * len(table.columns)) + "|"]
     for domain, task in table.rows:
@@ -184,7 +202,7 @@ def table_markdown_section(table: Table, heading_level: int = 2) -> str:
     parts = [
         f"{hashes} {table.title}",
         "",
-        f"Episode return: mean ± {spread}. `–`: no result.",
+        f"Episode return: mean ± {spread}. `–`: no result. {sample_sizes(table)}",
         "",
         to_markdown(table),
         "",
@@ -196,7 +214,32 @@ def table_markdown_section(table: Table, heading_level: int = 2) -> str:
         "",
         to_markdown(table, normalised=True),
     ]
+    for name in NORMALISERS[1:]:
+        if table.normalised_by.get(name):
+            parts += ["", f"{hashes}# {table.title}: {NORMALISED_TITLES[name]}", "",
+                      f"Normaliser: {table.normalisers[name].description}; tasks without it are gaps (`–`). "
+                      f"Mean ± {spread}.", "", to_markdown(table, normalised=name)]
     return "\n".join(parts)
+
+
+NORMALISED_TITLES = {"supervised": "percent of the supervised reference", "minmax": "min-max score (random 0, supervised 100)"}
+
+
+def sample_sizes(table: Table) -> str:
+    """What stands behind the cells: seeds per cell and evaluation episodes per result, per column."""
+    def counts(values: set[int]) -> str:
+        return "/".join(str(v) for v in sorted(values))
+
+    seeds: dict[str, set[int]] = defaultdict(set)
+    for (row, method), cell in table.cells.items():
+        if not row.endswith(f"/{AVERAGE}"):
+            seeds[method].add(cell.n)
+    parts = []
+    for method in table.columns:
+        episodes = table.episodes.get(method)
+        parts.append(f"{method} {counts(seeds[method])} seed{'s' if seeds[method] != {1} else ''}"
+                     + (f" × {counts(set(episodes))} episodes" if episodes else ""))
+    return "Behind each cell: " + "; ".join(parts) + "."
 
 
 def success_markdown_section(table: Table, heading_level: int = 2) -> str:
@@ -212,12 +255,12 @@ def success_markdown_section(table: Table, heading_level: int = 2) -> str:
     ])
 
 
-def to_csv(table: Table, normalised: bool = False) -> str:
+def to_csv(table: Table, normalised: bool | str = False) -> str:
     """A wide CSV: domain, task, then ``<method>_mean``, ``_std`` or ``_se``, ``_n`` per method.
 
     Numbers are written in full precision; gaps are empty cells.
     """
-    cells = table.normalised if normalised else table.cells
+    cells = table.cells_of(normalised)
     spread = table.spread
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")

@@ -1,0 +1,212 @@
+"""The aggregate part of ``dvfb report`` (docs/reports.md): per scope (every domain together, and
+each domain), a table of IQM, mean, median and optimality gap with stratified bootstrap
+intervals, the probability of improvement of every pair of methods, and a performance-profile
+figure, all on one normaliser's scores (:mod:`dvfb.analysis.normalise`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dvfb.analysis import aggregate as agg
+from dvfb.analysis.common import Score, method_sort_key
+from dvfb.analysis.normalise import REFERENCE_METHODS, Normaliser, choose, missing_reference
+from dvfb.analysis.normalise import normalisers as available_normalisers
+
+ALL_DOMAINS = "all domains"
+PROFILE_POINTS = 101
+
+
+@dataclass
+class BootstrapConfig:
+    samples: int = agg.BOOTSTRAP_SAMPLES
+    confidence: float = agg.CONFIDENCE
+    seed: int = 0
+
+
+@dataclass
+class Scope:
+    """The aggregates of one scope (a domain, or every domain)."""
+
+    name: str
+    tasks: list[str]
+    matrices: dict[str, agg.ScoreMatrix]
+    metrics: dict[str, dict[str, agg.Estimate]] = field(default_factory=dict)
+    improvement: dict[tuple[str, str], agg.Estimate] = field(default_factory=dict)
+    profiles: dict[str, agg.Profile] = field(default_factory=dict)
+    dropped: list[str] = field(default_factory=list)  # tasks some method lacks
+
+
+@dataclass
+class Aggregates:
+    kind: str  # "zeroshot" or "finetune"
+    title: str
+    normaliser: Normaliser | None
+    scopes: list[Scope]
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def unit(self) -> str:
+        return "normalised score" if self.normaliser is not None else "episode return"
+
+
+def _domains(scores: Sequence[Score]) -> list[str]:
+    seen: list[str] = []
+    for s in scores:
+        if s.domain not in seen:
+            seen.append(s.domain)
+    return seen
+
+
+def compute(scores: Sequence[Score], kind: str, title: str, requested: str = "auto",
+            bootstrap: BootstrapConfig | None = None) -> Aggregates | None:
+    """The aggregates of a table's scores; None when fewer than one method (beside the
+    references) has results. Raises AnalysisError when an explicitly requested normaliser lacks
+    a reference."""
+    bootstrap = bootstrap or BootstrapConfig()
+    methods = {s.method for s in scores if s.method not in REFERENCE_METHODS}
+    if not methods:
+        return None
+    available = available_normalisers(scores)
+    tasks = sorted({s.task for s in scores if s.method not in REFERENCE_METHODS})
+    normaliser = choose(requested, tasks, available)
+    notes = []
+    if requested == "auto":
+        if normaliser is None:
+            notes.append("aggregates are over raw episode returns: " + missing_reference("supervised", tasks, available))
+        elif normaliser.name != "minmax":
+            lacking = "supervised" if normaliser.name == "expert" else "minmax"
+            notes.append(f"aggregates use the {normaliser.name} normaliser: " + missing_reference(lacking, tasks, available))
+    domains = _domains([s for s in scores if s.method not in REFERENCE_METHODS])
+    scopes = []
+    groups = [(d, [s for s in scores if s.domain == d]) for d in domains]
+    if len(domains) > 1:
+        groups.insert(0, (ALL_DOMAINS, list(scores)))
+    for name, group in groups:
+        shared = agg.common_tasks(group)
+        every = sorted({s.task for s in group if s.method not in REFERENCE_METHODS})
+        scope = Scope(name, shared, agg.score_matrices(group, normaliser, shared),
+                      dropped=[t for t in every if t not in shared])
+        if not scope.matrices:
+            continue
+        _fill(scope, normaliser, bootstrap)
+        scopes.append(scope)
+        if scope.dropped:
+            notes.append(f"{name}: {', '.join(scope.dropped)} left out of the aggregates (not every method has them)")
+        thin = sorted(m for m, matrix in scope.matrices.items() if not matrix.can_bootstrap)
+        if thin:
+            notes.append(f"{name}: fewer than {agg.MIN_RUNS_FOR_CI} runs on some task for {', '.join(thin)}: "
+                         "no confidence intervals (with so few runs they are not meaningful)")
+    return Aggregates(kind, title, normaliser, scopes, notes)
+
+
+def _fill(scope: Scope, normaliser: Normaliser | None, b: BootstrapConfig) -> None:
+    methods = sorted(scope.matrices, key=method_sort_key)
+    for method in methods:
+        scope.metrics[method] = agg.aggregate_metrics(scope.matrices[method], samples=b.samples,
+                                                      confidence=b.confidence, seed=b.seed)
+    for x in methods:
+        for y in methods:
+            if x != y:
+                scope.improvement[(x, y)] = agg.probability_of_improvement(
+                    scope.matrices[x], scope.matrices[y], samples=b.samples, confidence=b.confidence, seed=b.seed)
+    flat = np.concatenate([m.flat for m in scope.matrices.values()])
+    high = max(100.0, float(flat.max())) if normaliser is not None else float(flat.max())
+    low = min(0.0, float(flat.min()))
+    thresholds = np.linspace(low, high, PROFILE_POINTS)
+    for method in methods:
+        scope.profiles[method] = agg.performance_profile(scope.matrices[method], thresholds, samples=b.samples,
+                                                         confidence=b.confidence, seed=b.seed)
+
+
+# ---------------------------------------------------------------------------------------------
+# output
+
+
+def _estimate(e: agg.Estimate, digits: int = 1) -> str:
+    if not e.has_interval:
+        return f"{e.value:.{digits}f}"
+    return f"{e.value:.{digits}f} [{e.low:.{digits}f}, {e.high:.{digits}f}]"
+
+
+def markdown(result: Aggregates, bootstrap: BootstrapConfig, figure: str | None, heading_level: int = 2) -> str:
+    hashes = "#" * heading_level
+    level = int(round(100 * bootstrap.confidence))
+    scale = (f"{result.normaliser.name} normaliser: {result.normaliser.description}" if result.normaliser
+             else "raw episode returns (no normaliser covers every task)")
+    parts = [f"{hashes} {result.title}: aggregates", "",
+             f"Over runs × tasks, on the {scale}. Point estimate [{level}% interval of a stratified bootstrap: "
+             f"{bootstrap.samples} resamples, each task's runs resampled on their own, seed {bootstrap.seed}]. "
+             f"Optimality gap: mean shortfall below 100 (lower is better). No interval where a method has "
+             f"fewer than {agg.MIN_RUNS_FOR_CI} runs on a task.", ""]
+    for scope in result.scopes:
+        methods = sorted(scope.matrices, key=method_sort_key)
+        parts += [f"{hashes}# {scope.name}", "",
+                  f"Tasks: {', '.join(scope.tasks)}. " + "; ".join(
+                      f"{m} {scope.matrices[m].min_runs} run{'s' if scope.matrices[m].min_runs != 1 else ''}/task"
+                      for m in methods) + ".", "",
+                  "| method | " + " | ".join(agg.METRIC_TITLES[k] for k in agg.METRICS) + " |",
+                  "|---|" + "---:|" * len(agg.METRICS)]
+        for m in methods:
+            parts.append(f"| {m} | " + " | ".join(_estimate(scope.metrics[m][k]) for k in agg.METRICS) + " |")
+        if len(methods) > 1:
+            parts += ["", "Probability of improvement P(row > column): per task, the chance that a random run of "
+                      "the row scores above one of the column (ties count a half), averaged over the tasks.", "",
+                      "| P(row > column) | " + " | ".join(methods) + " |", "|---|" + "---:|" * len(methods)]
+            for x in methods:
+                cells = ["–" if x == y else _estimate(scope.improvement[(x, y)], 2) for y in methods]
+                parts.append(f"| {x} | " + " | ".join(cells) + " |")
+        parts.append("")
+    if figure:
+        parts += [f"Performance profiles: ![performance profile]({figure})", ""]
+    return "\n".join(parts)
+
+
+def to_csv(result: Aggregates) -> str:
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(["scope", "method", "metric", "value", "low", "high", "runs_per_task", "tasks", "normaliser"])
+    for scope in result.scopes:
+        for method in sorted(scope.matrices, key=method_sort_key):
+            for metric in agg.METRICS:
+                e = scope.metrics[method][metric]
+                writer.writerow([scope.name, method, metric, repr(e.value), "" if e.low is None else repr(e.low),
+                                 "" if e.high is None else repr(e.high), scope.matrices[method].min_runs,
+                                 " ".join(scope.tasks), result.normaliser.name if result.normaliser else "none"])
+        for (x, y), e in scope.improvement.items():
+            writer.writerow([scope.name, f"{x} > {y}", "probability_of_improvement", repr(e.value),
+                             "" if e.low is None else repr(e.low), "" if e.high is None else repr(e.high),
+                             min(scope.matrices[x].min_runs, scope.matrices[y].min_runs), " ".join(scope.tasks),
+                             result.normaliser.name if result.normaliser else "none"])
+    return out.getvalue()
+
+
+def plot_profiles(result: Aggregates, path: Path, confidence: float) -> Path:
+    """One panel per scope: the fraction of runs x tasks above each threshold, with its band."""
+    from matplotlib.figure import Figure
+
+    n = len(result.scopes)
+    fig = Figure(figsize=(5.2 * n, 3.8), dpi=100, layout="constrained")
+    fig.suptitle(f"{result.title}: performance profiles ({int(round(100 * confidence))}% stratified bootstrap bands)")
+    for i, scope in enumerate(result.scopes):
+        ax = fig.add_subplot(1, n, i + 1)
+        for method in sorted(scope.profiles, key=method_sort_key):
+            p = scope.profiles[method]
+            (line,) = ax.plot(p.thresholds, p.fraction, label=f"{method} ({scope.matrices[method].min_runs} runs/task)")
+            if p.low is not None:
+                ax.fill_between(p.thresholds, p.low, p.high, color=line.get_color(), alpha=0.2, linewidth=0)
+        ax.set_title(scope.name)
+        ax.set_xlabel(f"{result.unit} τ" + (f" ({result.normaliser.name})" if result.normaliser else ""))
+        ax.set_ylabel("fraction of runs × tasks with score > τ")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
