@@ -128,6 +128,93 @@ def test_bad_input_is_one_line_exit_2_and_creates_nothing(tmp_path, capsys, extr
     assert not sweep_dir.exists()
 
 
+@pytest.mark.parametrize("body, message", [
+    ("seeds = 5", "SweepConfig.seeds: expected a list, got 5"),
+    ('agents = "dvfb"', "SweepConfig.agents: expected a list, got 'dvfb'"),
+    ("[slurm]\npretrain = 3", "SlurmConfig.pretrain: expected a mapping, got 3"),
+    ("overrides = 3", "overrides must be a table"),
+    ('[overrides]\nframes = "many"', "frames: expected int, got 'many'"),
+])
+def test_sweep_files_of_the_wrong_shape_are_one_line(tmp_path, capsys, body, message):
+    sweep_file = tmp_path / "sweep.toml"
+    sweep_file.write_text(body + "\n")
+    sweep_dir = tmp_path / "sweep"
+    assert main(["sweep", "run", str(sweep_file), "--dir", str(sweep_dir), "--executor", "debug"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not sweep_dir.exists()
+
+
+@pytest.mark.parametrize("text, message", [("[0, 1]", "not a list"), ('{"seeds": null}', "expected a list, got None")])
+def test_json_sweep_files_of_the_wrong_shape_are_one_line(tmp_path, capsys, text, message):
+    sweep_file = tmp_path / "sweep.json"
+    sweep_file.write_text(text)
+    assert main(["sweep", "run", str(sweep_file), "--dir", str(tmp_path / "sweep")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "sweep").exists()
+
+
+def test_a_waiting_phase_is_stopped_with_sigterm_and_killed_after_the_grace(tmp_path):
+    """The runner's stop path, with real processes: the phase ignores USR2 (SLURM's warning goes
+    to the runner), gets SIGTERM once a stop is asked for, and is killed if it ignores that too."""
+    code = ("import signal, sys, time\n"
+            "if sys.argv[1] == 'ignores': signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+            "print('ready', flush=True); time.sleep(120)\n")
+    for behaviour, expected in (("obeys", -signal.SIGTERM), ("ignores", -signal.SIGKILL)):
+        child = subprocess.Popen([sys.executable, "-c", code, behaviour], stdout=subprocess.PIPE, text=True,
+                                 preexec_fn=units._die_with_parent_and_ignore_usr2)
+        assert child.stdout.readline().strip() == "ready"
+        child.send_signal(signal.SIGUSR2)  # ignored: SLURM's time-limit warning
+        time.sleep(0.3)
+        assert child.poll() is None
+        started = time.monotonic()
+        returncode = units._wait_for_phase(child, lambda: True, grace_s=1.0)
+        assert returncode == expected and time.monotonic() - started < 30
+
+
+def test_status_of_a_sweep_that_is_not_running_says_its_units_wait(tmp_path, capsys):
+    sweep_dir = tmp_path / "sweep"
+    args = sweep_args(sweep_dir, "debug", agents=("fb",), seeds=("0",), frames=400)
+    assert main(args + ["--phases", "pretrain"]) == 0
+    capsys.readouterr()
+    # A grid whose pre-training is done but whose zero-shot never started: not "stopped".
+    config = json.loads((sweep_dir / "sweep.json").read_text())
+    config["phases"] = ["pretrain", "zeroshot"]
+    (sweep_dir / "sweep.json").write_text(json.dumps(config))
+    assert main(["sweep", "status", str(sweep_dir)]) == 0
+    row = capsys.readouterr().out.splitlines()[1]
+    assert row.split()[:2] == ["fb_walker_s0", "queued"] and "not started; run the sweep command to continue" in row
+
+
+def test_ctrl_c_stops_a_local_sweep_and_a_rerun_continues_it(tmp_path, capsys):
+    """SIGINT to the sweep process alone: the running phase is stopped (it checkpoints), the queued
+    units never start, the sweep exits with 130; the same command continues from the checkpoint."""
+    sweep_dir = tmp_path / "sweep"
+    args = sweep_args(sweep_dir, "local", agents=("fb",), seeds=("0", "1"), frames=6000,
+                      extra=["--workers", "1", "--phases", "pretrain"])
+    submitter = subprocess.Popen([sys.executable, "-m", "dvfb", *args], stdout=subprocess.PIPE,
+                                 stderr=subprocess.STDOUT, text=True)
+    try:
+        run = sweep_dir / "runs" / "fb_walker_s0"
+        wait_until(lambda: (run / "checkpoints" / "latest").exists(), "the first checkpoint")
+        assert not (run / "pretrain_summary.json").exists(), "the run finished before it could be stopped"
+        submitter.send_signal(signal.SIGINT)
+        output, _ = submitter.communicate(timeout=120)
+    finally:
+        if submitter.poll() is None:
+            submitter.kill()
+            submitter.wait()
+    assert submitter.returncode == 130, output
+    assert "stopped by SIGINT" in output and "repeat the command to continue" in output
+    assert unit_state(sweep_dir, "fb_walker_s0", "pretrain")["state"] == "interrupted"
+    assert not (sweep_dir / "state" / "fb_walker_s1").exists() and not (sweep_dir / "runs" / "fb_walker_s1").exists()
+    assert main(args) == 0
+    assert "2 unit(s) run, 0 already done" in capsys.readouterr().out
+    log = (sweep_dir / "logs" / "fb_walker_s0" / "pretrain.log").read_text()
+    assert log.split("=== attempt 2")[1].splitlines()[0].endswith("--resume")
+    assert json.loads((run / "pretrain_summary.json").read_text())["resumed_from"] > 0
+
+
 class _no_raise:
     def __enter__(self):
         return self
@@ -198,6 +285,8 @@ def test_requeued_job_resumes_and_ends_equal_to_an_uninterrupted_run(tmp_path, s
         assert not (run / "pretrain_summary.json").exists(), "the run finished before it could be requeued"
         job = sweep_jobs(sweep_dir)["fb_walker_s0/pretrain"]
         subprocess.run(["scontrol", "requeue", job], check=True, capture_output=True)
+        time.sleep(1)
+        release_requeued(job)
         output, _ = submitter.communicate(timeout=900)
     finally:
         if submitter.poll() is None:
@@ -210,6 +299,82 @@ def test_requeued_job_resumes_and_ends_equal_to_an_uninterrupted_run(tmp_path, s
     assert "=== attempt 2" in log and log.split("=== attempt 2")[1].splitlines()[0].endswith("--resume")
     assert json.loads((run / "pretrain_summary.json").read_text())["resumed_from"] > 0
     assert_same_results(reference, sweep_dir, "fb_walker_s0")
+
+
+def job_state(job: str) -> str:
+    out = subprocess.run(["squeue", "-h", "-j", job, "-o", "%T"], capture_output=True, text=True).stdout
+    return out.strip()
+
+
+def release_requeued(job: str) -> None:
+    """SLURM holds a requeued job for two minutes (Reason=BeginTime); release it at once, as an
+    administrator can, so that the tests do not wait."""
+    subprocess.run(["scontrol", "update", f"jobid={job}", "StartTime=now"], capture_output=True)
+
+
+def test_time_limits_requeue_pretraining_and_finetuning_and_end_bit_identical(tmp_path, slurm_cluster):  # noqa: F811
+    """A real time limit for each phase: once the phase has written a checkpoint, the test lowers
+    its job's limit to one minute, so that SLURM sends USR2 (45 s before the limit) at its next
+    check; the phase ignores USR2, the runner stops it with SIGTERM (it checkpoints), the job
+    requeues itself and the next attempt resumes. The uninterrupted reference runs beside it, and
+    both phases end bit-identical to it."""
+    finetune = ["--phases", "pretrain", "finetune", "--finetune-tasks", "walker_walk",
+                "--finetune.frames", "28000", "--finetune.eval-every", "14000", "--finetune.eval-episodes", "1",
+                "--finetune.seed-frames", "300", "--finetune.update-every", "4", "--finetune.checkpoint-every", "1000"]
+    one_cell = dict(agents=("fb",), seeds=("0",), frames=30000, extra=finetune)
+    reference, sweep_dir = tmp_path / "reference", tmp_path / "limited"
+    limits = ["--slurm.signal-delay-s", "45"]
+    processes = [subprocess.Popen([sys.executable, "-m", "dvfb", *sweep_args(d, executor, **one_cell), *extra],
+                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                 for d, executor, extra in ((reference, "debug", []), (sweep_dir, "slurm", limits))]
+    run = sweep_dir / "runs" / "fb_walker_s0"
+    try:
+        for unit, run_dir in (("pretrain", run), ("finetune-walker_walk", run / "finetune" / "walker_walk")):
+            wait_until(lambda: (run_dir / "checkpoints" / "latest").exists(), f"the first {unit} checkpoint")
+            job = sweep_jobs(sweep_dir)[f"fb_walker_s0/{unit}"]
+            subprocess.run(["scontrol", "update", f"jobid={job}", "TimeLimit=1"], check=True, capture_output=True)
+            wait_until(lambda: "requeued by SLURM" in (unit_state(sweep_dir, "fb_walker_s0", unit)["reason"] or ""),
+                       f"the {unit} job to stop at its time limit", limit_s=120)
+            wait_until(lambda: job_state(job) in ("PENDING", "RUNNING"), f"the {unit} job to be requeued")
+            subprocess.run(["scontrol", "update", f"jobid={job}", "TimeLimit=30"], check=True, capture_output=True)
+            release_requeued(job)
+        outputs = [p.communicate(timeout=900)[0] for p in processes]
+    finally:
+        for p in processes:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    assert [p.returncode for p in processes] == [0, 0], outputs
+    for unit in ("pretrain", "finetune-walker_walk"):
+        state = unit_state(sweep_dir, "fb_walker_s0", unit)
+        assert state["state"] == "done" and state["attempts"] == 2, (unit, state)
+        log = (sweep_dir / "logs" / "fb_walker_s0" / f"{unit}.log").read_text()
+        assert log.split("=== attempt 2")[1].splitlines()[0].endswith("--resume"), unit
+    # Both jobs got SLURM's USR2 and requeued themselves (submitit reads the limit the job started
+    # with, so it calls the lowered limit a preemption; the path is the same).
+    job_logs = "".join(p.read_text() for p in (sweep_dir / "slurm").rglob("*_log.out"))
+    assert job_logs.count("Caught signal SIGUSR2") >= 2 and job_logs.count("Requeued job") == 2
+    assert json.loads((run / "pretrain_summary.json").read_text())["resumed_from"] > 0
+    expected_run = reference / "runs" / "fb_walker_s0"
+    snapshots = list_snapshots(run)
+    assert snapshots and snapshots == list_snapshots(expected_run)
+    for name in snapshots:
+        a, b = dict(_flatten(load_snapshot(run, name))), dict(_flatten(load_snapshot(expected_run, name)))
+        for key, value in a.items():
+            if isinstance(value, torch.Tensor):
+                assert torch.equal(value, b[key]), f"{name}: {key} differs"
+    curve = json.loads((run / "finetune" / "walker_walk" / "curve.json").read_text())["curve"]
+    expected = json.loads((expected_run / "finetune" / "walker_walk" / "curve.json").read_text())["curve"]
+    assert [p["frames"] for p in curve] == [0, 14000, 28000]
+    assert [p["returns"] for p in curve] == [p["returns"] for p in expected]
+    from dvfb.runs import RunDir, load_checkpoint
+
+    final = load_checkpoint(RunDir(run / "finetune" / "walker_walk"))
+    expected_final = load_checkpoint(RunDir(expected_run / "finetune" / "walker_walk"))
+    assert final["step"] == expected_final["step"] == 28000
+    tensors = {k: v for k, v in _flatten(final["finetuner"]) if isinstance(v, torch.Tensor)}
+    expected_tensors = dict(_flatten(expected_final["finetuner"]))
+    assert tensors and all(torch.equal(v, expected_tensors[k]) for k, v in tensors.items())
 
 
 def test_rerun_after_killed_submitter_completes_only_the_missing_units(tmp_path, slurm_cluster, capsys):  # noqa: F811
@@ -244,6 +409,8 @@ def test_rerun_after_killed_submitter_completes_only_the_missing_units(tmp_path,
     assert main(args) == 0
     out = capsys.readouterr().out
     assert f"{len(jobs) - len(done_before)} job(s) submitted" in out
+    # Every unit counted once: those done before this run as already done, the rest as run now.
+    assert f"{len(jobs) - len(done_before)} unit(s) run, {len(done_before)} already done, 0 failed" in out
     for key in jobs:
         state = unit_state(sweep_dir, *key.split("/"))
         assert done(key)

@@ -257,6 +257,46 @@ def test_read_only_run_fails_before_the_work(finished_run, small_disk, capsys):
     assert "Read-only file system" in capsys.readouterr().err
 
 
+def test_read_only_outputs_of_the_report_and_the_analyses_are_one_line(finished_run, small_disk, capsys):
+    import shutil
+
+    run = small_disk / "ro"
+    shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns("checkpoints", "tb", "metrics"))
+    assert main(["zeroshot", str(run), "--task", "point_mass_maze_reach_top_left", "--inference.steps", "300",
+                 "--inference.random-action-steps", "100", "--inference.samples", "300",
+                 "--inference.eval-episodes", "1"]) == 0
+    subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], check=True)
+    capsys.readouterr()
+    assert main(["report", str(run), "--out", str(small_disk / "report")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "cannot write in" in err and "Read-only file system" in err
+    assert not (small_disk / "report").exists()
+    started = time.monotonic()
+    assert main(["analyze-exploration", str(run), "--skills", "4", "--repeats", "2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Read-only file system" in err
+    assert time.monotonic() - started < 30  # before the rollouts
+    assert main(["analyze-value", str(run), "--task", "point_mass_maze_reach_top_left",
+                 "--inference.steps", "300", "--inference.random-action-steps", "100", "--inference.samples", "300"]) == 2
+    assert "Read-only file system" in capsys.readouterr().err
+
+
+def test_resume_of_a_damaged_run_directory_changes_nothing(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(pretrain_argv(run, 1200, "--checkpoint-every", "1000")) == 0
+    import shutil
+
+    shutil.rmtree(run / "tb")
+    (run / "tb").write_text("not a directory")
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    capsys.readouterr()
+    assert main(pretrain_argv(run, 2200, "--checkpoint-every", "1000", "--resume")) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "tb is not a directory" in err
+    after = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    assert {p: b for p, b in after.items() if p.name != ".lock"} == {p: b for p, b in before.items() if p.name != ".lock"}
+
+
 # ---------------------------------------------------------------------------------------------
 # Numerics and progress
 

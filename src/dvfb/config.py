@@ -116,9 +116,16 @@ def _coerce(name: str, tp: Any, value: Any) -> Any:
             raise ConfigError(f"{name}: expected a mapping, got {value!r}")
         return from_dict(tp, value, check=False)  # validated as a whole by the outermost call
     if origin in (list, tuple):
+        # A string or a number is not a list: "dvfb" must not become ["d", "v", "f", "b"].
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{name}: expected a list, got {value!r}")
         (inner, *_rest) = typing.get_args(tp) or (Any,)
         seq = [_coerce(name, inner, v) for v in value]
         return tuple(seq) if origin is tuple else seq
+    if origin is dict and not isinstance(value, dict):
+        raise ConfigError(f"{name}: expected a mapping, got {value!r}")
+    if value is None and tp is not Any:
+        raise ConfigError(f"{name}: expected {getattr(tp, '__name__', tp)}, got None")
     if tp is float and isinstance(value, (int, float)) and not isinstance(value, bool):
         return float(value)
     if tp is int and isinstance(value, bool):
@@ -132,6 +139,8 @@ def from_dict(cls: type[T], data: dict, check: bool = True, prefix: str = "") ->
     """Build ``cls`` from a dict, rejecting unknown keys and wrongly typed values; with ``check``
     (the outermost call), also :func:`validate` the result, naming nested fields by their path
     (``prefix`` is the path of ``cls`` itself, e.g. ``"inference."``)."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{cls.__name__}: expected a mapping of options, got {type(data).__name__}")
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:

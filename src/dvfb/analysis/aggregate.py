@@ -116,7 +116,15 @@ def common_tasks(scores: Sequence[Score]) -> list[str]:
     if not per_method:
         return []
     shared = set.intersection(*per_method.values())
-    return [t for t in order if t in shared]
+    return sorted((t for t in order if t in shared), key=_task_order)
+
+
+def _task_order(task: str) -> tuple:
+    """Registry order (docs/tasks.md), unknown tasks last by name."""
+    from dvfb.envs import TASKS
+
+    names = list(TASKS)
+    return (names.index(task), "") if task in names else (len(names), task)
 
 
 def stratified_interval(columns: Sequence[np.ndarray], statistic: Callable[..., np.ndarray], *,

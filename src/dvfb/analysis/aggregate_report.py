@@ -192,8 +192,9 @@ def plot_profiles(result: Aggregates, path: Path, confidence: float) -> Path:
     from matplotlib.figure import Figure
 
     n = len(result.scopes)
-    fig = Figure(figsize=(5.2 * n, 3.8), dpi=100, layout="constrained")
-    fig.suptitle(f"{result.title}: performance profiles ({int(round(100 * confidence))}% stratified bootstrap bands)")
+    fig = Figure(figsize=(max(6.5, 5.2 * n), 4.2), dpi=100, layout="constrained")
+    fig.suptitle(f"{result.title}: performance profiles\n({int(round(100 * confidence))}% stratified bootstrap bands)",
+                 fontsize=11)
     for i, scope in enumerate(result.scopes):
         ax = fig.add_subplot(1, n, i + 1)
         for method in sorted(scope.profiles, key=method_sort_key):

@@ -96,7 +96,7 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
                         seed: int | None = None, overwrite: bool = False, device: str | None = None) -> dict:
     """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary."""
     from dvfb import envs
-    from dvfb.runs import write_json_atomic
+    from dvfb.runs import check_writable, write_json_atomic
     from dvfb.training.seeding import run_generator, seed_everything
     from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 
@@ -129,6 +129,7 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
     zs = agent.sample_skill(skills)
     if zs is None:
         raise AnalysisError(f"analyze-exploration compares skills; {config.agent!r} has a single policy")
+    check_writable(out_dir)  # a read-only run fails now, not after the rollouts
     env = envs.make(config.domain, seed=seed, reward_free=True)
     source = env.unwrapped
     positions = np.full((skills, repeats, steps + 1, len(coords.names)), np.nan)

@@ -38,6 +38,7 @@ from dvfb.analysis import aggregate_report
 from dvfb.analysis.aggregate_report import BootstrapConfig
 from dvfb.analysis.curves import load_curves, plot_curves
 from dvfb.analysis.normalise import CHOICES, NORMALISERS
+from dvfb.runs import check_writable
 from dvfb.analysis.tables import Table, build_table, success_markdown_section, table_markdown_section, to_csv
 
 TABLE1 = "Table 1: zero-shot"
@@ -115,7 +116,16 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
     existing = [p for p in planned if p.exists()]
     if existing and not overwrite:
         raise AnalysisError(f"{existing[0]} exists; pass --overwrite to replace the report in {out_dir}")
-    out_dir.mkdir(parents=True, exist_ok=True)
+    check_writable(out_dir)  # a read-only or full disk: one line, before the first file
+    try:
+        return _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_success, rnd_success,
+                             runs, curves, bootstrap, curve_band)
+    except OSError as exc:
+        raise AnalysisError(f"cannot write the report in {out_dir}: {exc.strerror or exc}") from exc
+
+
+def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_success, rnd_success, runs, curves,
+                  bootstrap, curve_band) -> Report:
 
     sections = ["# dvfb report", "", "Runs: " + ", ".join(f"`{p}`" for p in paths) + ".", ""]
     if zs or rnd:

@@ -118,7 +118,7 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
     """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary."""
     from dvfb import envs
     from dvfb.config import to_dict
-    from dvfb.runs import write_json_atomic
+    from dvfb.runs import check_writable, write_json_atomic
     from dvfb.training.seeding import run_generator, seed_everything
     from dvfb.workflows.resources import check_task_in_domain
     from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
@@ -140,6 +140,7 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
     if not agent.learns_skill_value:
         raise AnalysisError(f"agent {config.agent!r} learns no skill value (analyze-value needs a method that does, "
                             "such as fb or dvfb)")
+    check_writable(out_dir)  # a read-only run fails now, not after the rollouts
     seed = config.seed if seed is None else seed
     rng = seed_everything(seed)
     agent.use_generator(run_generator(seed, agent.device))  # the analysis' own random stream

@@ -141,7 +141,13 @@ class RunDir:
         data = read_json(config_path, RunDirError)
         if not isinstance(data, dict):
             raise RunDirError(f"{config_path} is corrupt: expected a JSON object")
-        return cls(path)
+        run = cls(path)
+        # A resumed run writes into these; one that is not a directory fails now, before anything
+        # (config.json included) is rewritten, not halfway through the resume.
+        for sub in (run.metrics_dir, run.tb_dir, run.checkpoints_dir, run.snapshots_dir):
+            if sub.exists() and not sub.is_dir():
+                raise RunDirError(f"{sub} is not a directory; the run directory {path} is damaged (move that file away)")
+        return run
 
     def load_config(self, cls: type[T]) -> T:
         """The run's config as ``cls``; unknown keys or wrong types raise ConfigError."""
@@ -204,6 +210,24 @@ class RunLock:
         if self._file is not None:
             self._file.close()  # closing releases the flock
             self._file = None
+
+    @staticmethod
+    def holder(path: str | os.PathLike) -> str | None:
+        """The process id written by the live holder of ``path``'s lock, or None when nobody
+        holds it (no lock file, or a stale one of a dead process)."""
+        import fcntl
+
+        try:
+            file = open(Path(path) / LOCK_FILE, encoding="utf-8")
+        except OSError:
+            return None
+        with file:
+            try:
+                fcntl.flock(file.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except OSError:
+                return file.read().strip() or "unknown"
+            fcntl.flock(file.fileno(), fcntl.LOCK_UN)
+            return None
 
     def remove_if_created(self) -> None:
         """Undo the directory this lock created (a run that failed before writing anything)."""

@@ -24,13 +24,14 @@ from __future__ import annotations
 import concurrent.futures
 import os
 import shlex
+import signal
 import subprocess
 import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from dvfb.errors import DvfbError
+from dvfb.errors import DvfbError, RunInterrupted
 from dvfb.runs import read_json, write_json_atomic
 from dvfb.sweep import spec
 from dvfb.sweep.spec import SweepConfig
@@ -41,10 +42,12 @@ from dvfb.sweep.units import (
     UnitInterrupted,
     find_unit,
     is_done,
+    mark_failed,
     mark_requeued,
     read_state,
+    clear_stop,
+    request_stop,
     run_unit,
-    stop_current_phase,
     units_of,
 )
 
@@ -90,11 +93,18 @@ def _say(message: str) -> None:
     print(f"[sweep] {message}", flush=True)
 
 
-def _record(outcome: Outcome, unit: Unit, run: Callable[[], str]) -> bool:
-    """Run a unit and file its outcome; True when it finished."""
+def _record(outcome: Outcome, unit: Unit, run: Callable[[], str], interrupt_stops: bool = False) -> bool:
+    """Run a unit and file its outcome; True when it finished. With ``interrupt_stops`` an
+    interrupted unit (Ctrl-C in the debug executor's own process) stops the sweep."""
     try:
         result = run()
-    except (UnitFailed, UnitInterrupted) as exc:
+    except UnitInterrupted as exc:
+        if interrupt_stops:
+            raise RunInterrupted(f"{exc}; repeat the command to continue", signal.SIGINT) from None
+        outcome.failed[unit.key] = str(exc)
+        _say(f"FAILED {exc}")
+        return False
+    except UnitFailed as exc:
         outcome.failed[unit.key] = str(exc)
         _say(f"FAILED {exc}")
         return False
@@ -121,37 +131,62 @@ def run_debug(sweep: SweepDir, config: SweepConfig) -> Outcome:
     threads = config.torch_threads
     for cell in spec.cells(config):
         first, *rest = units_of(config, cell)
-        if _record(outcome, first, lambda u=first: run_unit(str(sweep.path), cell.name, u.name, threads, True)):
+        if _record(outcome, first, lambda u=first: run_unit(str(sweep.path), cell.name, u.name, threads, True), True):
             for unit in rest:
-                _record(outcome, unit, lambda u=unit: run_unit(str(sweep.path), cell.name, u.name, threads, True))
+                _record(outcome, unit, lambda u=unit: run_unit(str(sweep.path), cell.name, u.name, threads, True), True)
         else:
             _dependents_not_run(outcome, rest, f"the pre-training of {cell.name} did not finish")
     return outcome
 
 
 def run_local(sweep: SweepDir, config: SweepConfig) -> Outcome:
+    """The worker pool. SIGINT (Ctrl-C) or SIGTERM stops the sweep: no further unit starts, the
+    running phases get SIGTERM and checkpoint, and the sweep raises RunInterrupted once they have
+    exited (exit status 128 + the signal); repeating the command continues it."""
     workers = min(config.workers or cores(), cores())
     threads = config.torch_threads or max(1, cores() // workers)
     _say(f"local executor: {workers} worker(s), {threads} torch thread(s) each")
     outcome = Outcome()
     pending: dict[concurrent.futures.Future, tuple[Unit, list[Unit]]] = {}
-    with concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="dvfb-sweep") as pool:
-        def start(unit: Unit, dependents: list[Unit]) -> None:
-            future = pool.submit(run_unit, str(sweep.path), unit.cell.name, unit.name, threads)
-            pending[future] = (unit, dependents)
+    received: list[int] = []
 
-        for cell in spec.cells(config):
-            first, *rest = units_of(config, cell)
-            start(first, rest)
-        while pending:
-            finished, _ = concurrent.futures.wait(pending, return_when=concurrent.futures.FIRST_COMPLETED)
-            for future in finished:
-                unit, dependents = pending.pop(future)
-                if _record(outcome, unit, future.result):
-                    for dependent in dependents:
-                        start(dependent, [])
-                else:
-                    _dependents_not_run(outcome, dependents, f"the pre-training of {unit.cell.name} did not finish")
+    def on_signal(signum, frame) -> None:
+        received.append(signum)
+        request_stop()  # only sets a flag; the waiting workers stop their phases
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    clear_stop()
+    try:
+        with concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="dvfb-sweep") as pool:
+            def start(unit: Unit, dependents: list[Unit]) -> None:
+                future = pool.submit(run_unit, str(sweep.path), unit.cell.name, unit.name, threads)
+                pending[future] = (unit, dependents)
+
+            for cell in spec.cells(config):
+                first, *rest = units_of(config, cell)
+                start(first, rest)
+            while pending:
+                if received:
+                    for future in list(pending):
+                        if future.cancel():  # queued, never started
+                            pending.pop(future)
+                finished, _ = concurrent.futures.wait(pending, timeout=0.5,
+                                                      return_when=concurrent.futures.FIRST_COMPLETED)
+                for future in finished:
+                    unit, dependents = pending.pop(future)
+                    if _record(outcome, unit, future.result) and not received:
+                        for dependent in dependents:
+                            start(dependent, [])
+                    elif not received:
+                        _dependents_not_run(outcome, dependents, f"the pre-training of {unit.cell.name} did not finish")
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        clear_stop()
+    if received:
+        name = signal.Signals(received[0]).name
+        raise RunInterrupted(f"stopped by {name}: {len(outcome.done)} unit(s) finished, the running ones checkpointed; "
+                             f"repeat the command to continue (dvfb sweep status {sweep.path})", received[0])
     return outcome
 
 
@@ -204,14 +239,32 @@ def _sbatch_options(lines: list[str]) -> dict:
 
 
 class UnitJob(submitit.helpers.Checkpointable):
-    """A unit in a SLURM job. On USR2 (time-out, preemption) submitit calls checkpoint(): the phase
-    is stopped and the same unit is requeued; the new attempt resumes it."""
+    """A unit in a SLURM job.
+
+    Before a time limit (and on preemption) SLURM sends USR2 to every process of the job. The phase
+    ignores it (docs/sweeps.md); here a handler only records it, and the loop that waits for the
+    phase, outside the handler, stops the phase with SIGTERM (it checkpoints and exits as
+    interrupted). Then submitit's own USR2 handler is called from ordinary code: it calls
+    :meth:`checkpoint` (which records the requeue) and requeues the job, whose next attempt
+    resumes the unit from its checkpoint. Nothing blocking runs inside a signal handler.
+    """
 
     def __call__(self, sweep_path: str, cell_name: str, unit_name: str, torch_threads: int) -> str:
-        return run_unit(sweep_path, cell_name, unit_name, torch_threads)
+        received: list[int] = []
+        submitit_handler = signal.getsignal(signal.SIGUSR2)
+        signal.signal(signal.SIGUSR2, lambda signum, frame: received.append(signum))
+        try:
+            return run_unit(sweep_path, cell_name, unit_name, torch_threads, stop=lambda: bool(received))
+        except UnitInterrupted:
+            if received and callable(submitit_handler):
+                submitit_handler(received[0], None)  # checkpoint(), requeue, exit
+            raise
+        finally:
+            signal.signal(signal.SIGUSR2, submitit_handler)
 
     def checkpoint(self, sweep_path: str, cell_name: str, unit_name: str, torch_threads: int):
-        stop_current_phase()
+        # Only a file write: submitit calls this from its signal handler when USR2 comes before
+        # the unit started (the phase, if any, has already stopped when it is called from above).
         mark_requeued(sweep_path, cell_name, unit_name)
         return super().checkpoint(sweep_path, cell_name, unit_name, torch_threads)
 
@@ -255,6 +308,9 @@ def _submit_array(executor, config: SweepConfig, phase: str, units: list[Unit], 
 def run_slurm(sweep: SweepDir, config: SweepConfig) -> Outcome:
     alive = alive_jobs()
     recorded: dict[str, str] = read_json(sweep.jobs_path) if sweep.jobs_path.is_file() else {}
+    # What was done before this run started: the summary counts each unit once, as done before,
+    # done now or failed.
+    done_before = [u.key for cell in spec.cells(config) for u in units_of(config, cell) if is_done(sweep, config, u)]
 
     def in_flight(unit: Unit) -> str | None:
         job = recorded.get(unit.key)
@@ -302,10 +358,11 @@ def run_slurm(sweep: SweepDir, config: SweepConfig) -> Outcome:
     waiting = {key: job for key, job in recorded.items() if key in submitted or job in alive}
     _say(f"slurm: {len(submitted)} job(s) submitted, {len(waiting) - len(submitted)} still in flight from an "
          f"earlier submission; jobs in {sweep.slurm_dir}")
-    return _wait_for_jobs(sweep, config, waiting)
+    return _wait_for_jobs(sweep, config, {k: j for k, j in waiting.items() if k not in done_before}, done_before)
 
 
-def _wait_for_jobs(sweep: SweepDir, config: SweepConfig, waiting: dict[str, str]) -> Outcome:
+def _wait_for_jobs(sweep: SweepDir, config: SweepConfig, waiting: dict[str, str],
+                   done_before: list[str]) -> Outcome:
     units = {key: find_unit(config, *key.split("/")) for key in waiting}
     started = {key: (read_state(sweep, unit) or {}).get("attempts", 0) for key, unit in units.items()}
     reported: set[str] = set()
@@ -319,17 +376,24 @@ def _wait_for_jobs(sweep: SweepDir, config: SweepConfig, waiting: dict[str, str]
         if all(job not in alive for job in waiting.values()):
             break
         time.sleep(config.slurm.poll_s)
-    outcome = Outcome()
+    outcome = Outcome(skipped=list(done_before))
     for key, unit in units.items():
         state = read_state(sweep, unit) or {}
         if is_done(sweep, config, unit):
-            ran = state.get("attempts", 0) > started[key]
-            (outcome.done if ran else outcome.skipped).append(key)
+            outcome.done.append(key)  # it was not done when this run started
+        elif state.get("state") == "running":
+            # The job is gone but the unit's state was never closed: the process was killed
+            # (a signal, the time limit before the requeue handler ran, memory). Close it.
+            reason = (f"killed: its job {waiting[key]} ended while the unit ran (a signal, out of time or out of "
+                      f"memory); job log: {sweep.slurm_dir / waiting[key]}")
+            mark_failed(sweep, unit, reason)
+            outcome.failed[key] = f"{key} {reason}; log: {state.get('log')}"
         elif state.get("state") in ("failed", "interrupted") and state.get("attempts", 0) > started[key]:
             outcome.failed[key] = f"{key} {state['state']} ({state.get('reason')}); log: {state.get('log')}"
         else:
-            outcome.failed[key] = (f"{key} not run: its job {waiting[key]} ended without running it (a dependency "
-                                   f"failed or the job was cancelled); job log: {sweep.slurm_dir}")
+            outcome.failed[key] = (f"{key} not run: its job {waiting[key]} ended before running it (a dependency "
+                                   f"failed, or the job was cancelled or timed out before it started); job log: "
+                                   f"{sweep.slurm_dir}")
     return outcome
 
 

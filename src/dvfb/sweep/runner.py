@@ -138,7 +138,7 @@ def _format_seconds(seconds: float) -> str:
 
 
 def cell_status(sweep: SweepDir, config: SweepConfig, cell: Cell, jobs: dict[str, str] | None,
-                recorded: dict[str, str]) -> dict:
+                recorded: dict[str, str], sweep_active: bool = False) -> dict:
     """State (done / running / queued / failed / stopped), frames, ETA and a note of one cell."""
     units = units_of(config, cell)
     states = {u.name: read_state(sweep, u) or {} for u in units}
@@ -164,11 +164,16 @@ def cell_status(sweep: SweepDir, config: SweepConfig, cell: Cell, jobs: dict[str
         state = "failed"
         first = states[failed[0].name]
         note = f"{failed[0].name}: {first.get('reason')} (log: {first.get('log')})"
-    elif queued or "queued" in live.values() or not any(s.get("attempts") for s in states.values()):
+    elif queued or "queued" in live.values():
         state, note = "queued", ""
-    else:
+    elif any(not d and states[u.name].get("state") in ("interrupted", "running") for u, d in zip(units, done)):
+        # A unit that was stopped, or whose process is gone while its state says running.
         state = "stopped"
         note = "interrupted; run the sweep command again to continue"
+    else:
+        # Units never started: waiting behind others while a sweep process runs, or for one.
+        state = "queued"
+        note = "" if sweep_active else "not started; run the sweep command to continue"
     phases = f"{sum(done)}/{len(units)}"
     return {"cell": cell.name, "state": state, "frames": frames, "target": target, "eta": eta,
             "units_done": phases, "note": note}
@@ -188,7 +193,10 @@ def status(path: Path) -> tuple[list[dict], str | None]:
         except SlurmError as exc:
             # The files still tell what is done and what failed; only queued/running is unknown.
             warning = f"squeue cannot be asked, so queued and running jobs are not shown: {exc}"
-    return [cell_status(sweep, config, cell, jobs, recorded) for cell in spec.cells(config)], warning
+    # A live sweep process (it holds the sweep directory's lock) will start the waiting units;
+    # SLURM jobs of a sweep whose submitter was killed are seen through squeue.
+    active = RunLock.holder(sweep.path) is not None or bool(jobs)
+    return [cell_status(sweep, config, cell, jobs, recorded, active) for cell in spec.cells(config)], warning
 
 
 def format_status(rows: list[dict]) -> str:

@@ -364,14 +364,17 @@ def read_file(path: Path) -> dict:
     """The contents of a sweep file (``.toml`` or ``.json``)."""
     if not path.is_file():
         raise ConfigError(f"sweep file {path} does not exist")
+    if path.suffix not in (".toml", ".json"):
+        raise ConfigError(f"sweep file {path}: expected a .toml or .json file")
     try:
-        if path.suffix == ".toml":
-            return tomllib.loads(path.read_text(encoding="utf-8"))
-        if path.suffix == ".json":
-            return json.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
+        data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise ConfigError(f"sweep file {path} cannot be read: {exc}") from exc
-    raise ConfigError(f"sweep file {path}: expected a .toml or .json file")
+    if not isinstance(data, dict):
+        raise ConfigError(f"sweep file {path} must hold an object of sweep fields (agents, seeds, ...), "
+                          f"not a {type(data).__name__}")
+    return data
 
 
 def build(base: dict, file_data: dict, flag_data: dict, flag_overrides: dict[str, str]) -> SweepConfig:

@@ -26,7 +26,9 @@ import socket
 import subprocess
 import sys
 import time
+import threading
 import traceback
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -198,12 +200,31 @@ def slurm_job_id() -> str | None:
 # running a unit
 
 
-# The phase process of the unit this process runs (one at a time), for stop_current_phase.
-_current_phase: subprocess.Popen | None = None
+# A request to stop: set by a signal handler (the local sweep's SIGINT/SIGTERM, a SLURM job's USR2)
+# and read by the loops that wait for phases, which then stop their phase with SIGTERM and wait
+# for its checkpoint outside any handler. Setting an Event never blocks.
+_stop = threading.Event()
 
 
-def _die_with_parent() -> None:
-    # Linux: the phase gets SIGTERM when the worker that started it dies, so that a killed
+def request_stop() -> None:
+    """Ask every running phase of this process to checkpoint and stop, and no new one to start.
+    Safe in a signal handler: it only sets a flag."""
+    _stop.set()
+
+
+def stop_requested() -> bool:
+    return _stop.is_set()
+
+
+def clear_stop() -> None:
+    _stop.clear()
+
+
+def _die_with_parent_and_ignore_usr2() -> None:
+    # The phase ignores USR2: SLURM sends it to every process of the job step before a time limit,
+    # and the runner, not the phase, decides what to do (SIGTERM, so that the phase checkpoints).
+    signal.signal(signal.SIGUSR2, signal.SIG_IGN)
+    # Linux: the phase gets SIGTERM when the worker thread that started it dies, so that a killed
     # submitter leaves no phase running that a re-run would start a second time.
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
@@ -211,18 +232,20 @@ def _die_with_parent() -> None:
         pass
 
 
-def stop_current_phase(grace_s: float = STOP_GRACE_S) -> None:
-    """Send SIGTERM to the running phase and wait for it to exit (it checkpoints on SIGTERM where
-    the workflow supports it; otherwise the next attempt resumes from the last checkpoint)."""
-    child = _current_phase
-    if child is None or child.poll() is not None:
-        return
-    child.send_signal(signal.SIGTERM)
-    try:
-        child.wait(timeout=grace_s)
-    except subprocess.TimeoutExpired:
-        child.kill()
-        child.wait()
+def _wait_for_phase(child: subprocess.Popen, stop: Callable[[], bool], grace_s: float = STOP_GRACE_S) -> int:
+    """Wait for the phase; when ``stop()`` becomes true, send it SIGTERM once (it checkpoints and
+    exits as interrupted) and kill it if it has not exited after ``grace_s``."""
+    stopped_at = None
+    while True:
+        try:
+            return child.wait(timeout=0.25)
+        except subprocess.TimeoutExpired:
+            pass
+        if stopped_at is None and stop():
+            child.send_signal(signal.SIGTERM)
+            stopped_at = time.monotonic()
+        elif stopped_at is not None and time.monotonic() - stopped_at > grace_s:
+            child.kill()
 
 
 def _interrupted(returncode: int) -> bool:
@@ -271,29 +294,30 @@ def _run_in_process(argv: list[str], log: Path) -> int:
     return code
 
 
-def _run_subprocess(argv: list[str], log: Path, torch_threads: int) -> int:
-    global _current_phase
+def _run_subprocess(argv: list[str], log: Path, torch_threads: int, stop: Callable[[], bool]) -> int:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     if torch_threads > 0:
         # numpy and the BLAS under it get the same share of the cores as torch.
         for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
             env[name] = str(torch_threads)
     with open(log, "ab") as out:
-        _current_phase = subprocess.Popen([sys.executable, "-m", "dvfb", *argv], stdout=out,
-                                          stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                                          preexec_fn=_die_with_parent)
-        try:
-            return _current_phase.wait()
-        finally:
-            _current_phase = None
+        child = subprocess.Popen([sys.executable, "-m", "dvfb", *argv], stdout=out, stderr=subprocess.STDOUT,
+                                 stdin=subprocess.DEVNULL, env=env, preexec_fn=_die_with_parent_and_ignore_usr2)
+        return _wait_for_phase(child, stop)
 
 
-def run_unit(sweep_path: str, cell_name: str, unit_name: str, torch_threads: int, in_process: bool = False) -> str:
+def run_unit(sweep_path: str, cell_name: str, unit_name: str, torch_threads: int, in_process: bool = False,
+             stop: Callable[[], bool] | None = None) -> str:
     """Run (or continue) one unit of the sweep in ``sweep_path``; ``"done"`` or ``"skipped"``
     (it was done already). Raises UnitFailed or UnitInterrupted with the reason and log path.
 
-    This is what every executor calls, in a worker thread, a SLURM job or this process.
+    This is what every executor calls, in a worker thread, a SLURM job or this process. The phase
+    is stopped (SIGTERM, then it checkpoints) when :func:`request_stop` was called or ``stop()``
+    becomes true; a unit asked to stop before it starts does not start.
     """
+    def stopping() -> bool:
+        return stop_requested() or (stop is not None and stop())
+
     sweep = SweepDir(sweep_path)
     config = spec.load_stored(sweep.path)
     unit = find_unit(config, cell_name, unit_name)
@@ -301,6 +325,8 @@ def run_unit(sweep_path: str, cell_name: str, unit_name: str, torch_threads: int
         if (read_state(sweep, unit) or {}).get("state") != "done":
             _write_state(sweep, unit, state="done")
         return "skipped"
+    if stopping():
+        raise UnitInterrupted(f"{unit.key} was not started: the sweep is stopping")
     log = sweep.log_path(unit)
     log.parent.mkdir(parents=True, exist_ok=True)
     argv = command(sweep, config, unit, torch_threads)
@@ -312,7 +338,7 @@ def run_unit(sweep_path: str, cell_name: str, unit_name: str, torch_threads: int
     _write_state(sweep, unit, state="running", attempts=attempts, started=time.time(), ended=None,
                  exit_code=None, reason=None, log=str(log), host=socket.gethostname(), pid=os.getpid(),
                  job_id=slurm_job_id(), command=["dvfb", *argv])
-    code = _run_in_process(argv, log) if in_process else _run_subprocess(argv, log, torch_threads)
+    code = _run_in_process(argv, log) if in_process else _run_subprocess(argv, log, torch_threads, stopping)
     reason = _exit_reason(log, offset, code)
     if code == 0 and is_done(sweep, config, unit):
         _write_state(sweep, unit, state="done", ended=time.time(), exit_code=0)
@@ -326,8 +352,13 @@ def run_unit(sweep_path: str, cell_name: str, unit_name: str, torch_threads: int
     raise UnitFailed(f"{unit.key} failed ({reason}); log: {log}")
 
 
-def mark_requeued(sweep_path: str, cell_name: str, unit_name: str) -> None:
+def mark_failed(sweep: SweepDir, unit: Unit, reason: str) -> None:
+    """Close a unit whose process is gone without having recorded its end."""
+    _write_state(sweep, unit, state="failed", ended=time.time(), reason=reason)
+
+
+def mark_requeued(sweep_path: str, cell_name: str, unit_name: str, why: str = "time limit or preemption") -> None:
     """Record that the unit's job stopped its phase to be requeued (SLURM time-out/preemption)."""
     sweep = SweepDir(sweep_path)
     unit = find_unit(spec.load_stored(sweep.path), cell_name, unit_name)
-    _write_state(sweep, unit, state="interrupted", ended=time.time(), reason="requeued by SLURM")
+    _write_state(sweep, unit, state="interrupted", ended=time.time(), reason=f"requeued by SLURM ({why})")
