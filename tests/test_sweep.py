@@ -186,6 +186,25 @@ def test_status_of_a_sweep_that_is_not_running_says_its_units_wait(tmp_path, cap
     assert row.split()[:2] == ["fb_walker_s0", "queued"] and "not started; run the sweep command to continue" in row
 
 
+def test_a_killed_local_sweep_leaves_no_unit_running(tmp_path):
+    import socket
+
+    from dvfb.sweep import runner
+
+    sweep_dir = tmp_path / "sweep"
+    assert main(sweep_args(sweep_dir, "debug", agents=("fb",), seeds=("0",), frames=400) + ["--phases", "pretrain"]) == 0
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    path = sweep_dir / "state" / "fb_walker_s0" / "pretrain.json"
+    state = json.loads(path.read_text())
+    state.update(state="running", pid=dead.pid, host=socket.gethostname(), job_id=None)
+    path.write_text(json.dumps(state))
+    config = spec.load_stored(sweep_dir)
+    assert runner.close_dead_units(units.SweepDir(sweep_dir), config) == ["fb_walker_s0/pretrain"]
+    closed = unit_state(sweep_dir, "fb_walker_s0", "pretrain")
+    assert closed["state"] == "failed" and "ended without recording" in closed["reason"]
+
+
 def test_ctrl_c_stops_a_local_sweep_and_a_rerun_continues_it(tmp_path, capsys):
     """SIGINT to the sweep process alone: the running phase is stopped (it checkpoints), the queued
     units never start, the sweep exits with 130; the same command continues from the checkpoint."""
@@ -225,6 +244,17 @@ class _no_raise:
 
 # ---------------------------------------------------------------------------------------------
 # local and debug
+
+
+def test_a_phase_that_argparse_refuses_in_the_debug_executor_is_a_recorded_failure(tmp_path, monkeypatch, capsys):
+    def refusing_main(argv):
+        print("dvfb pretrain: error: argument --x: invalid choice", file=sys.stderr)
+        raise SystemExit(2)
+
+    monkeypatch.setattr(units, "_in_process_main", refusing_main)
+    log = tmp_path / "unit.log"
+    assert units._run_in_process(["pretrain", "--x"], log) == 2
+    assert "invalid choice" in log.read_text() and "invalid choice" in capsys.readouterr().err
 
 
 def test_debug_sweep_rerun_changes_nothing_and_other_grid_is_refused(tmp_path, capsys):

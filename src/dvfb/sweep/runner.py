@@ -60,10 +60,27 @@ def run(path: Path, config: SweepConfig) -> Outcome:
         except BaseException:
             lock.remove_if_created()
             raise
+        close_dead_units(sweep, config)
         outcome = EXECUTORS[config.executor](sweep, config)
         if config.report:
             write_reports(sweep, config)
         return outcome
+
+
+def close_dead_units(sweep: SweepDir, config: SweepConfig) -> list[str]:
+    """Units whose state says running but whose process on this host is gone (a killed local
+    sweep): recorded as interrupted, so that no state stays running after its process."""
+    from dvfb.sweep.units import mark_failed
+
+    closed = []
+    for cell in spec.cells(config):
+        for unit in units_of(config, cell):
+            state = read_state(sweep, unit) or {}
+            if state.get("state") == "running" and not state.get("job_id") and _alive(state, None) is None \
+                    and state.get("host") == socket.gethostname():
+                mark_failed(sweep, unit, "its process ended without recording how (the sweep was killed?)")
+                closed.append(unit.key)
+    return closed
 
 
 def report_groups(config: SweepConfig) -> dict[str, list[Cell]]:

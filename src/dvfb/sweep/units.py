@@ -285,6 +285,8 @@ def _run_in_process(argv: list[str], log: Path) -> int:
     try:
         with contextlib.redirect_stderr(errors):
             code = main(argv)
+    except SystemExit as exc:  # argparse's exit (a flag it refuses): the unit's failure, said and recorded
+        code = exc.code if isinstance(exc.code, int) else 1
     except Exception:  # noqa: BLE001 - recorded as the unit's failure, like a crashed subprocess
         errors.write(traceback.format_exc())
         code = 1
