@@ -315,7 +315,7 @@ def test_requeued_job_resumes_and_ends_equal_to_an_uninterrupted_run(tmp_path, s
         assert not (run / "pretrain_summary.json").exists(), "the run finished before it could be requeued"
         job = sweep_jobs(sweep_dir)["fb_walker_s0/pretrain"]
         subprocess.run(["scontrol", "requeue", job], check=True, capture_output=True)
-        time.sleep(1)
+        wait_until(lambda: job_state(job) == "PENDING", "the requeued job to wait", limit_s=120)
         release_requeued(job)
         output, _ = submitter.communicate(timeout=900)
     finally:
@@ -365,7 +365,7 @@ def test_time_limits_requeue_pretraining_and_finetuning_and_end_bit_identical(tm
             subprocess.run(["scontrol", "update", f"jobid={job}", "TimeLimit=1"], check=True, capture_output=True)
             wait_until(lambda: "requeued by SLURM" in (unit_state(sweep_dir, "fb_walker_s0", unit)["reason"] or ""),
                        f"the {unit} job to stop at its time limit", limit_s=120)
-            wait_until(lambda: job_state(job) in ("PENDING", "RUNNING"), f"the {unit} job to be requeued")
+            wait_until(lambda: job_state(job) == "PENDING", f"the {unit} job to be requeued")
             subprocess.run(["scontrol", "update", f"jobid={job}", "TimeLimit=30"], check=True, capture_output=True)
             release_requeued(job)
         outputs = [p.communicate(timeout=900)[0] for p in processes]

@@ -261,7 +261,8 @@ def test_read_only_outputs_of_the_report_and_the_analyses_are_one_line(finished_
     import shutil
 
     run = small_disk / "ro"
-    shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns("checkpoints", "tb", "metrics"))
+    shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns("checkpoints", "tb", "metrics", "zeroshot",
+                                                                      "analysis"))
     assert main(["zeroshot", str(run), "--task", "point_mass_maze_reach_top_left", "--inference.steps", "300",
                  "--inference.random-action-steps", "100", "--inference.samples", "300",
                  "--inference.eval-episodes", "1"]) == 0
