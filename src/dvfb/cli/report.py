@@ -37,7 +37,7 @@ def register(sub, agent: str) -> None:
     from dvfb.analysis.normalise import CHOICES
 
     p = sub.add_parser(
-        "report", help="Table 1 (zero-shot), Table 2 (fine-tuning), Table 6 (success rates) and fine-tuning curves",
+        "report", help="Tables 1, 2 and 6, normalised scores, aggregates with bootstrap intervals, profiles and curves",
         formatter_class=Formatter,
         description="Markdown and CSV tables shaped like the paper's Table 1 (zero-shot) and Table 2 "
                     "(fine-tuning, last point of each curve): rows domain/task with per-domain averages, "
