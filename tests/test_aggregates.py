@@ -130,16 +130,13 @@ def _walker_method(root: Path, agent: str, values: dict[int, dict[str, float]]) 
 
 
 def _supervised(root: Path, per_task: dict[str, list[float]]) -> None:
-    from dvfb.config import merge
-
     for task, values in per_task.items():
         for seed, value in enumerate(values):
             path = make_pretrain_run(root / f"supervised_{task}_s{seed}", agent="supervised", seed=seed,
                                      zeroshot={task: value})
             config = json.loads((path / "config.json").read_text())
             config["supervised"]["task"] = task
-            (path / "config.json").write_text(json.dumps(config))
-    assert merge  # the configs stay valid run configs (loaded strictly by the report)
+            (path / "config.json").write_text(json.dumps(config))  # still a valid, strictly loaded run config
 
 
 def _random_file(path: Path, per_task: dict[str, float]) -> Path:
@@ -244,16 +241,14 @@ def test_supervised_reference_trains_on_its_task_and_is_evaluated_on_it_only(tmp
     import torch
 
     from dvfb.agents import make_agent
+    from dvfb.config import merge
     from dvfb.workflows.pretrain import pretrain
     from dvfb.workflows.zeroshot import zeroshot
     from dvfb.errors import ConfigError
     from tiny import filled_replay, tiny_run_config
 
     task = "point_mass_maze_reach_bottom_right"
-    config = tiny_run_config("supervised", frames=1500)
-    from dvfb.config import merge
-
-    config = merge(config, {"supervised": {"task": task}})
+    config = merge(tiny_run_config("supervised", frames=1500), {"supervised": {"task": task}})
     # Its learner's reward is the batch's own n-step task reward.
     agent = make_agent("supervised", 4, 2, config, "cpu")
     replay = filled_replay(agent)

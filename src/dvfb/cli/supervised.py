@@ -28,13 +28,12 @@ def supervised_config(args: argparse.Namespace):
 def cmd_supervised(args: argparse.Namespace) -> int:
     from dvfb.workflows.pretrain import pretrain
     from dvfb.workflows.zeroshot import result_path, zeroshot
-    from dvfb.runs import RunDir
 
     config = supervised_config(args)
     run_dir = Path(args.run_dir) if args.run_dir else Path("runs") / f"{AGENT}_{args.task}_{config.preset}_s{config.seed}"
     run = pretrain(config, run_dir, resume=args.resume, overwrite=args.overwrite, progress=args.progress,
                    command=sys.argv)
-    out = result_path(RunDir.open(run.path), args.task, config.frames, config.frames)
+    out = result_path(run, args.task, config.frames, config.frames)
     if out.exists():
         print(f"supervised reference {run.path}: already evaluated ({out})")
         return 0

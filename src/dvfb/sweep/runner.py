@@ -15,7 +15,7 @@ from dvfb.runs import LOCK_FILE, RunLock, read_json, write_json_atomic
 from dvfb.sweep import spec
 from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, alive_jobs
 from dvfb.sweep.spec import Cell, SweepConfig
-from dvfb.sweep.units import SweepDir, is_done, pretrain_target, read_state, units_of
+from dvfb.sweep.units import SweepDir, is_done, mark_failed, pretrain_target, read_state, units_of
 
 
 def prepare(path: Path, requested: SweepConfig) -> SweepDir:
@@ -69,9 +69,8 @@ def run(path: Path, config: SweepConfig) -> Outcome:
 
 def close_dead_units(sweep: SweepDir, config: SweepConfig) -> list[str]:
     """Units whose state says running but whose process on this host is gone (a killed local
-    sweep): recorded as interrupted, so that no state stays running after its process."""
-    from dvfb.sweep.units import mark_failed
-
+    sweep): recorded as failed with that reason, so that no state stays running after its
+    process; the executor then runs them again."""
     closed = []
     for cell in spec.cells(config):
         for unit in units_of(config, cell):
