@@ -95,11 +95,19 @@ def _snapshot_tensors(run_dir: Path, frames: int) -> dict[str, torch.Tensor]:
     return {f"{m}.{k}": v for m, sd in state["modules"].items() for k, v in sd.items()}
 
 
-def test_resume_continues_as_if_uninterrupted(tmp_path: Path):
+# The authors' loader shards keep their own state (what each shard has seen, when it looks next).
+SAMPLINGS = {"uniform": [], "loader_shards": ["--replay.sampling", "loader_shards", "--replay.loader-workers", "2",
+                                             "--replay.loader-refresh", "150"]}
+
+
+@pytest.mark.parametrize("sampling", sorted(SAMPLINGS))
+def test_resume_continues_as_if_uninterrupted(tmp_path: Path, sampling: str):
     full, split = tmp_path / "full", tmp_path / "split"
-    assert main(pretrain_args(full, 2000, agent="fb")) == 0
-    assert main(pretrain_args(split, 1000, agent="fb")) == 0
-    assert main(pretrain_args(split, 2000, agent="fb", extra=["--resume"])) == 0
+    extra = SAMPLINGS[sampling]
+    assert main(pretrain_args(full, 2000, agent="fb", extra=extra)) == 0
+    assert main(pretrain_args(split, 1000, agent="fb", extra=extra)) == 0
+    assert main(pretrain_args(split, 2000, agent="fb", extra=["--resume", *extra])) == 0
+    assert json.loads((split / "config.json").read_text())["replay"]["sampling"] == sampling
     a, b = _snapshot_tensors(full, 2000), _snapshot_tensors(split, 2000)
     assert a.keys() == b.keys()
     for key in a:

@@ -41,6 +41,16 @@ Sampling
     content and the generator, not on which slot an episode happens to occupy: a buffer restored
     from :meth:`ReplayBuffer.state_dict` draws identical batches.
 
+Loader shards
+    A buffer built with a :class:`LoaderShards` sampler draws batches as the authors' code (and
+    URLB, whose replay it inherits) receives them from its DataLoader: only finished episodes are
+    sampled; episode ``g`` (counted from the first episode of the run) belongs to shard ``g mod W``;
+    batch ``k`` comes from shard ``k mod W`` alone, episode-uniform among the episodes that shard
+    holds, then step-uniform within the episode; and a shard looks for newly finished episodes
+    only every ``refresh`` of its own samples. So a batch holds about a ``1/W`` share of the
+    episodes (right after the uniform seed phase of 4 episodes: one), and data reaches the
+    sampler only once its episode ends. docs/methods.md, "Replay sampling", says why this matters.
+
 Devices
     On CPU the array is a numpy array and the sampler reads it through a zero-copy
     ``torch.from_numpy`` view, so a step costs a few small numpy writes. On an accelerator the
@@ -64,6 +74,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from dvfb.config import param
 from dvfb.errors import CheckpointError, ConfigError
 
 _STATE_FORMAT = 1
@@ -119,13 +130,107 @@ class Batch:
                      {k: move(v) for k, v in self.columns.items()})
 
 
+REPLAY_SAMPLINGS = ("uniform", "loader_shards")
+
+
+@dataclass
+class ReplaySamplingConfig:
+    """How pre-training batches are drawn from the replay (docs/methods.md, "Replay sampling")."""
+
+    sampling: str = param("uniform", "uniform: every stored transition equally likely, the episode in progress "
+                          "included; loader_shards: as the authors' (URLB's) DataLoader delivers them, finished "
+                          "episodes only, each batch from one of --replay.loader-workers shards of the episodes.",
+                          REPLAY_SAMPLINGS)
+    loader_workers: int = param(4, "loader_shards: number of shards W (their replay_buffer_num_workers); episode g "
+                                "belongs to shard g mod W and batch k comes from shard k mod W.", at_least=1)
+    loader_refresh: int = param(1000, "loader_shards: a shard looks for newly finished episodes every this many of "
+                                "its own samples (their fetch_every).", at_least=1)
+
+    def sampler(self) -> LoaderShards | None:
+        """The replay's sampler: None for uniform sampling."""
+        if self.sampling == "uniform":
+            return None
+        return LoaderShards(self.loader_workers, self.loader_refresh)
+
+
+class LoaderShards:
+    """The authors' DataLoader sampling, as a sampler of a :class:`ReplayBuffer` (module docstring,
+    "Loader shards").
+
+    Per shard ``w`` it keeps how many episodes had finished when ``w`` last looked
+    (``visible[w]``) and how many samples it has drawn since (``since_refresh[w]``); a shard looks
+    before a sample once ``refresh`` samples have passed, so a look can fall inside a batch, as it
+    does in a DataLoader worker. Eviction stays the buffer's (oldest episode first, globally), where
+    each of their workers evicts its own oldest episode beyond ``capacity / W``: the same episodes
+    for runs that never fill the buffer, and nearly the same otherwise.
+    """
+
+    def __init__(self, workers: int, refresh: int):
+        if workers < 1 or refresh < 1:
+            raise ConfigError(f"loader shards need workers >= 1 and refresh >= 1, got {workers} and {refresh}")
+        self.workers, self.refresh = int(workers), int(refresh)
+        self.visible = np.zeros(self.workers, dtype=np.int64)
+        self.since_refresh = np.full(self.workers, self.refresh, dtype=np.int64)  # the first sample looks
+        self.batches = 0
+
+    def _pool(self, shard: int, first_index: int, finished: int, counts: np.ndarray) -> np.ndarray:
+        """Ring positions the shard samples from: its finished episodes that it has seen and that
+        still have an eligible step; if it holds none (too few episodes for the shards), every
+        finished episode; if none has finished yet, every stored episode."""
+        index = first_index + np.arange(finished)
+        eligible = counts[:finished] > 0
+        mine = eligible & (index % self.workers == shard) & (index < self.visible[shard])
+        for pool in (mine, eligible):
+            if pool.any():
+                return np.flatnonzero(pool)
+        return np.flatnonzero(counts > 0)
+
+    def draw(self, slots: np.ndarray, counts: np.ndarray, first_index: int, finished: int, batch_size: int,
+             generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(slot, step) of ``batch_size`` transitions. ``slots`` and ``counts`` (eligible steps) are
+        in ring order, whose position ``i`` is episode ``first_index + i`` of the run; the first
+        ``finished`` positions are finished episodes."""
+        device = generator.device if generator is not None else torch.device("cpu")
+        shard = self.batches % self.workers
+        self.batches += 1
+        slot_parts, step_parts = [], []
+        done = 0
+        while done < batch_size:
+            if self.since_refresh[shard] >= self.refresh:
+                self.since_refresh[shard] = 0
+                self.visible[shard] = first_index + finished
+            n = int(min(batch_size - done, self.refresh - self.since_refresh[shard]))
+            self.since_refresh[shard] += n
+            pool = torch.from_numpy(self._pool(shard, first_index, finished, counts)).to(device)
+            episode = pool[torch.randint(len(pool), (n,), generator=generator, device=device)]
+            length = torch.from_numpy(counts).to(device)[episode]
+            uniform = torch.rand(n, generator=generator, device=device, dtype=torch.float64)
+            step_parts.append((uniform * length).floor().long().minimum(length - 1))
+            slot_parts.append(torch.from_numpy(slots).to(device)[episode])
+            done += n
+        return torch.cat(slot_parts), torch.cat(step_parts)
+
+    def state_dict(self) -> dict:
+        return {"workers": self.workers, "refresh": self.refresh, "visible": torch.from_numpy(self.visible.copy()),
+                "since_refresh": torch.from_numpy(self.since_refresh.copy()), "batches": self.batches}
+
+    def load_state_dict(self, state: dict) -> None:
+        if (state.get("workers"), state.get("refresh")) != (self.workers, self.refresh):
+            raise CheckpointError(f"replay sampler state is for {state.get('workers')} shards refreshed every "
+                                  f"{state.get('refresh')} samples; this run has {self.workers} and {self.refresh}")
+        self.visible = torch.as_tensor(state["visible"]).to(torch.int64).numpy().copy()
+        self.since_refresh = torch.as_tensor(state["since_refresh"]).to(torch.int64).numpy().copy()
+        self.batches = int(state["batches"])
+
+
 def _num_slots(capacity: int, max_episode_length: int) -> int:
     # capacity // L full episodes can be stored whole, plus one slot for the episode in progress.
     return capacity // max_episode_length + 1
 
 
 class ReplayBuffer:
-    """Preallocated FIFO replay buffer of whole episodes, sampled uniformly per transition.
+    """Preallocated FIFO replay buffer of whole episodes, sampled uniformly per transition (or by a
+    :class:`LoaderShards` sampler).
 
     See the module docstring for the layout, eviction and sampling rules (docs/methods.md §6).
 
@@ -137,11 +242,14 @@ class ReplayBuffer:
         stage_on_host: write steps into a host staging episode and copy them to the storage before
             sampling. Default: only when ``device`` is not the CPU. Forcing it on CPU exercises the
             accelerator code path in tests.
+        columns: declared per-step columns, by name and width.
+        sampler: how :meth:`sample` draws; None is uniform over the stored transitions.
     """
 
     def __init__(self, capacity: int, obs_dim: int, action_dim: int, z_dim: int = 0,
                  max_episode_length: int = 1000, device: str | torch.device = "cpu",
-                 stage_on_host: bool | None = None, columns: dict[str, int] | None = None) -> None:
+                 stage_on_host: bool | None = None, columns: dict[str, int] | None = None,
+                 sampler: LoaderShards | None = None) -> None:
         for name, value, minimum in (("capacity", capacity, 1), ("obs_dim", obs_dim, 1),
                                      ("action_dim", action_dim, 1), ("z_dim", z_dim, 0),
                                      ("max_episode_length", max_episode_length, 1)):
@@ -209,6 +317,7 @@ class ReplayBuffer:
         self._s_columns = {name: self._store[:, :, cols] for name, cols in self._column_slices.items()}
 
         self._lengths = np.zeros(self.num_slots, dtype=np.int64)  # transitions per slot
+        self.sampler = sampler
         self._reset_bookkeeping()
 
     def _reset_bookkeeping(self) -> None:
@@ -216,6 +325,7 @@ class ReplayBuffer:
         self._first = 0            # slot of the oldest stored episode
         self._num_episodes = 0     # slots in use, the episode in progress included
         self._num_transitions = 0
+        self._episodes_begun = 0   # episodes ever started, evicted ones included (loader shards)
         self._open = False         # whether `add` may extend the newest episode
         self._cur_slot = 0
         self._cur_len = 0
@@ -261,6 +371,7 @@ class ReplayBuffer:
                 self._evict_oldest()
             self._cur_slot = (self._first + self._num_episodes) % self.num_slots
             self._num_episodes += 1
+            self._episodes_begun += 1
             self._cur_len = 0
             self._lengths[self._cur_slot] = 0
             self._write_slot = 0 if self._staged else self._cur_slot
@@ -363,12 +474,18 @@ class ReplayBuffer:
             what = f"with a {horizon}-step successor " if horizon > 1 else ""
             raise ValueError(f"cannot sample: the replay buffer holds no transition {what}yet")
 
-        index_device = generator.device if generator is not None else torch.device("cpu")
-        draws = torch.randint(total, (batch_size,), generator=generator, device=index_device)
-        cumulative_t = torch.from_numpy(cumulative).to(index_device)
-        episode = torch.searchsorted(cumulative_t, draws, right=True)
-        step = draws - (cumulative_t[episode] - torch.from_numpy(counts).to(index_device)[episode])
-        slot = torch.from_numpy(slots).to(index_device)[episode]
+        if self.sampler is not None:
+            # The episode in progress, if any, is the newest in ring order.
+            finished = self._num_episodes - (1 if self._open else 0)
+            slot, step = self.sampler.draw(slots, counts, self._episodes_begun - self._num_episodes, finished,
+                                           batch_size, generator)
+        else:
+            index_device = generator.device if generator is not None else torch.device("cpu")
+            draws = torch.randint(total, (batch_size,), generator=generator, device=index_device)
+            cumulative_t = torch.from_numpy(cumulative).to(index_device)
+            episode = torch.searchsorted(cumulative_t, draws, right=True)
+            step = draws - (cumulative_t[episode] - torch.from_numpy(counts).to(index_device)[episode])
+            slot = torch.from_numpy(slots).to(index_device)[episode]
         self._flush()
         if nstep > 1:
             return self._gather_nstep(slot.to(self.device), step.to(self.device), gamma, need_future, nstep)
@@ -450,8 +567,12 @@ class ReplayBuffer:
             np.cumsum(rows_per_episode) - rows_per_episode, rows_per_episode)
         rows = self._store[torch.from_numpy(slot_index).to(self.device),
                            torch.from_numpy(row_index).to(self.device)].cpu()
-        return {"format": _STATE_FORMAT, **self._shape_info(),
-                "episode_open": self._open, "lengths": torch.from_numpy(lengths), "rows": rows}
+        state = {"format": _STATE_FORMAT, **self._shape_info(),
+                 "episode_open": self._open, "lengths": torch.from_numpy(lengths), "rows": rows,
+                 "episodes_begun": self._episodes_begun}
+        if self.sampler is not None:
+            state["sampler"] = self.sampler.state_dict()
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         """Restore what :meth:`state_dict` saved; raises CheckpointError when it does not fit."""
@@ -468,6 +589,13 @@ class ReplayBuffer:
             lengths = torch.as_tensor(state["lengths"]).to(torch.int64).numpy()
             rows = torch.as_tensor(state["rows"])
             episode_open = bool(state["episode_open"])
+            # States written before the count was kept: no episode had been evicted in the runs
+            # that could use it (the loader shards came with it).
+            episodes_begun = int(state.get("episodes_begun", len(lengths)))
+            if self.sampler is not None:
+                if "sampler" not in state:
+                    raise CheckpointError("replay state was written without the loader-shards sampler this run uses")
+                self.sampler.load_state_dict(state["sampler"])
         except CheckpointError:
             raise
         except (KeyError, TypeError, AttributeError, RuntimeError) as exc:
@@ -503,6 +631,7 @@ class ReplayBuffer:
         self._lengths[:num_episodes] = lengths
         self._num_episodes = num_episodes
         self._num_transitions = int(lengths.sum())
+        self._episodes_begun = max(episodes_begun, num_episodes)
         self._open = episode_open
         if episode_open:
             self._cur_slot = num_episodes - 1

@@ -12,7 +12,8 @@ Presets:
 
 * ``paper`` -- the spec's defaults (hidden 1024, batch 1024, alpha 5, eta 0.5, 2M frames).
 * ``code``  -- the authors' published constants where the method has them (DVFB/FB: B on the
-  code's pairings, alpha 50, RND on s_t, fine-tuning objective ``50 Q_F + Q_M``).
+  code's pairings, alpha 50, RND on s_t, fine-tuning objective ``50 Q_F + Q_M``), and their
+  driver's replay sampling for every method (loader shards: finished episodes, one shard a batch).
 * ``small`` -- a CPU-sized preset: each method's constants with narrower networks and smaller
   batches (see docs/results/ for the measurements that justify it).
 """
@@ -33,6 +34,7 @@ from dvfb.protocols import protocols_of
 from dvfb.protocols.zero_shot import InferenceConfig
 from dvfb.config import from_dict, merge, param, replace, require_updates
 from dvfb.errors import ConfigError
+from dvfb.replay import ReplaySamplingConfig
 from dvfb.runs import read_json
 
 PRESETS = ("small", "paper", "code")
@@ -58,6 +60,8 @@ class PretrainConfig:
     seed_frames: int = param(4000, "Uniform-action steps before the first update.", at_least=0)
     update_every: int = param(2, "One gradient update every this many steps.", at_least=1)
     replay_capacity: int = param(1_000_000, "Replay capacity in transitions.", at_least=1)
+    replay: ReplaySamplingConfig = field(default_factory=ReplaySamplingConfig,
+                                         metadata={"help": "How the updates' batches are drawn from the replay."})
     snapshot_frames: list[int] = param([100_000, 500_000, 1_000_000, 2_000_000],
                                        "Frames at which agent snapshots are kept (the final frame always is).",
                                        at_least=1)
@@ -146,6 +150,8 @@ def preset_config(preset: str, agent: str = DEFAULT_AGENT, **top_level) -> Pretr
         config = merge(config, spec.defaults)
     if preset == "small":
         config = merge(config, SMALL_PRESET)
+    if preset == "code":
+        config = merge(config, CODE_PRESET)
     config = merge(config, spec.presets.get(preset, {}))
     return replace(config, **top_level) if top_level else config
 
@@ -161,6 +167,12 @@ SMALL_PRESET: dict = {
     "inference": {"eval_episodes": 10},
     "finetune": {"frames": 20_000, "eval_every": 5_000, "eval_episodes": 5, "seed_frames": 2000},
 }
+
+
+# The authors' driver, whatever the method: their (URLB's) replay reaches the updates through a
+# DataLoader with 4 workers that each hold a share of the finished episodes (docs/methods.md,
+# "Replay sampling"; measured in docs/results/crosscheck_walker.md).
+CODE_PRESET: dict = {"replay": {"sampling": "loader_shards", "loader_workers": 4, "loader_refresh": 1000}}
 
 
 def resolve_device(device: str) -> torch.device:

@@ -172,8 +172,9 @@ def _finetune_locked(run, config, agent, run_config, path, task, resume, overwri
     env = envs.make(task, seed=run_config.seed)
     eval_env = envs.make(task, seed=run_config.seed)  # same seed as the training env, as in [C]
     max_len = envs.TASKS[task].episode_length
+    # Batches are drawn the way the pre-training drew them (uniform, or the authors' loader shards).
     replay = ReplayBuffer(cfg.replay_capacity, agent.obs_dim, agent.action_dim, agent.skill_dim,
-                          max_episode_length=max_len, device=agent.device)
+                          max_episode_length=max_len, device=agent.device, sampler=config.replay.sampler())
     finetuner_cls = finetuner_class(get_spec(config.agent).finetuner)
     # The run's own random stream: the protocol's and the fine-tuner's draws, noise and batches.
     generator = run_generator(run_config.seed, agent.device)

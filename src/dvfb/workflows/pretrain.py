@@ -151,7 +151,7 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
     else:
         run = RunDir.create(run_path, config, overwrite=overwrite, command=command)
     replay = ReplayBuffer(config.replay_capacity, obs_dim, action_dim, agent.skill_dim,
-                          max_episode_length=episode_length, device=device)
+                          max_episode_length=episode_length, device=device, sampler=config.replay.sampler())
     needs = agent.replay_needs()
 
     step = 0
