@@ -403,3 +403,40 @@ def test_video_format_checks(tiny_run: Path, tmp_path: Path, capsys):
                            *FAST_INFERENCE], MUJOCO_GL="osmesa", PYOPENGL_PLATFORM="osmesa")
         assert result.returncode == 0, result.stderr
         assert mp4.stat().st_size > 0
+
+
+def test_crosscheck_table_reads_dvfb_runs_harness_outputs_and_metrics(tmp_path, capsys):
+    """scripts/crosscheck_table.py (docs/results/crosscheck_walker.md): per-seed task means, their
+    average and the ddof=1 spread, from either kind of directory; metrics under dvfb's names."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("crosscheck_table",
+                                                  Path(__file__).parents[1] / "scripts" / "crosscheck_table.py")
+    table = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(table)
+    for seed, (a, b) in enumerate([(10.0, 30.0), (20.0, 60.0)]):
+        run = tmp_path / f"dvfb_s{seed}"
+        (run / "zeroshot").mkdir(parents=True)
+        (run / "zeroshot" / "t_a.json").write_text(json.dumps({"mean_return": a}))
+        (run / "zeroshot" / "t_b.json").write_text(json.dumps({"mean_return": b}))
+        (run / "metrics").mkdir()
+        (run / "metrics" / "train.jsonl").write_text(
+            "\n".join(json.dumps({"step": f, "ortho_loss": -seed - f / 1000}) for f in (1000, 2000)) + "\n")
+        harness = tmp_path / f"authors_s{seed}"
+        harness.mkdir()
+        (harness / "zeroshot_t_a.json").write_text(json.dumps({"mean": a + 1}))
+        (harness / "zeroshot_t_b.json").write_text(json.dumps({"mean": b + 1}))
+        (harness / "log.txt").write_text("start\n  frames 1000 fps 3 orth_loss -5 intr_reward1 0.5\n"
+                                         "  frames 2000 fps 3 orth_loss -7 intr_reward1 0.25\n")
+    assert table.main(["--tasks", "t_a,t_b", f"dvfb={tmp_path}/dvfb_s?", f"authors={tmp_path}/authors_s?"]) == 0
+    out = capsys.readouterr().out
+    # Seed averages 20 and 40: mean 30, std (ddof=1) 14.1; the harness rows are 1 higher.
+    assert "| dvfb | 2 | 15.0 ± 7.1 | 45.0 ± 21.2 | 30.0 ± 14.1 | 20.0, 40.0 |" in out
+    assert "| authors | 2 | 16.0 ± 7.1 | 46.0 ± 21.2 | 31.0 ± 14.1 | 21.0, 41.0 |" in out
+    assert table.main(["--metrics", "ortho_loss,rnd_reward", "--window", "1000:2000",
+                       f"authors={tmp_path}/authors_s0", f"dvfb={tmp_path}/dvfb_s1"]) == 0
+    out = capsys.readouterr().out
+    assert "| authors | ortho_loss | -6 |" in out and "| authors | rnd_reward | 0.375 |" in out
+    assert "| dvfb | ortho_loss | -2.5 |" in out and "| dvfb | rnd_reward | - |" in out
+    with pytest.raises(SystemExit, match="no zero-shot result for t_c"):
+        table.main(["--tasks", "t_a,t_c", f"dvfb={tmp_path}/dvfb_s0"])
