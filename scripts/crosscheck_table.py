@@ -31,9 +31,24 @@ from pathlib import Path
 import numpy as np
 
 
+def read_result(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise SystemExit(f"crosscheck_table: cannot read {path}: {exc}") from exc
+
+
 def seed_scores(run: Path, tasks: list[str]) -> list[float]:
+    try:
+        return _seed_scores(run, tasks)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SystemExit(f"crosscheck_table: {run} is not a dvfb run, a harness output or a random-policy "
+                         f"file ({exc!r})") from exc
+
+
+def _seed_scores(run: Path, tasks: list[str]) -> list[float]:
     if run.is_file():  # a `dvfb random-policy --output` file: one "seed"
-        results = json.loads(run.read_text())["tasks"]
+        results = read_result(run)["tasks"]
         missing = [t for t in tasks if t not in results]
         if missing:
             raise SystemExit(f"crosscheck_table: {run} has no result for {', '.join(missing)}")
@@ -42,9 +57,9 @@ def seed_scores(run: Path, tasks: list[str]) -> list[float]:
     for task in tasks:
         dvfb_file, harness_file = run / "zeroshot" / f"{task}.json", run / f"zeroshot_{task}.json"
         if dvfb_file.is_file():
-            scores.append(float(json.loads(dvfb_file.read_text())["mean_return"]))
+            scores.append(float(read_result(dvfb_file)["mean_return"]))
         elif harness_file.is_file():
-            scores.append(float(json.loads(harness_file.read_text())["mean"]))
+            scores.append(float(read_result(harness_file)["mean"]))
         else:
             raise SystemExit(f"crosscheck_table: {run} has no zero-shot result for {task}")
     return scores
@@ -136,13 +151,14 @@ def main(argv: list[str] | None = None) -> int:
     if not args.tasks:
         parser.error("give --tasks (returns) or --metrics")
     tasks = args.tasks.split(",")
+    # Every result is read before anything is printed: a bad directory prints one line only.
+    tables = [(label, np.array([seed_scores(run, tasks) for run in runs])) for label, runs in groups]  # (seeds, tasks)
     print("| runs | seeds | " + " | ".join(t.split("_", 1)[-1] for t in tasks) + " | average | per-seed averages |")
     print("|---|---:|" + "---:|" * (len(tasks) + 2))
-    for label, runs in groups:
-        table = np.array([seed_scores(run, tasks) for run in runs])  # (seeds, tasks)
+    for label, table in tables:
         averages = table.mean(axis=1)
         cells = [cell(table[:, i]) for i in range(len(tasks))]
-        print(f"| {label} | {len(runs)} | " + " | ".join(cells) + f" | {cell(averages)} | "
+        print(f"| {label} | {len(table)} | " + " | ".join(cells) + f" | {cell(averages)} | "
               + ", ".join(f"{a:.1f}" for a in averages) + " |")
     return 0
 

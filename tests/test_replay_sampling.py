@@ -137,6 +137,12 @@ def test_new_episodes_reach_a_shard_only_at_its_next_look_as_the_reference_loade
         drawn = batch.obs[:, 0].long().tolist()
         pools = reference.pools(finished, batch_size)
         assert all(e in pool for e, pool in zip(drawn, pools)), k
+        # The shard holds what the reference worker holds, and looks when it looks: a sampler that
+        # never looked again would still draw inside the pools above.
+        shard = replay.sampler
+        for w in range(workers):
+            held = {f for f in finished if f % workers == w and f < shard.visible[w]}
+            assert held == reference.held[w] and shard.since_refresh[w] == reference.since[w], (k, w)
         assert all(e < newest for e in drawn), k  # never the episode in progress
         # Samples drawn while a finished episode of the shard was not yet seen by it.
         lagged += sum(len({f for f in finished if f % workers == (k % workers)} - pool) > 0 for pool in pools)

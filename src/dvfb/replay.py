@@ -193,6 +193,7 @@ class LoaderShards:
         device = generator.device if generator is not None else torch.device("cpu")
         shard = self.batches % self.workers
         self.batches += 1
+        slots_t, counts_t = torch.from_numpy(slots).to(device), torch.from_numpy(counts).to(device)
         slot_parts, step_parts = [], []
         done = 0
         while done < batch_size:
@@ -203,10 +204,10 @@ class LoaderShards:
             self.since_refresh[shard] += n
             pool = torch.from_numpy(self._pool(shard, first_index, finished, counts)).to(device)
             episode = pool[torch.randint(len(pool), (n,), generator=generator, device=device)]
-            length = torch.from_numpy(counts).to(device)[episode]
+            length = counts_t[episode]
             uniform = torch.rand(n, generator=generator, device=device, dtype=torch.float64)
             step_parts.append((uniform * length).floor().long().minimum(length - 1))
-            slot_parts.append(torch.from_numpy(slots).to(device)[episode])
+            slot_parts.append(slots_t[episode])
             done += n
         return torch.cat(slot_parts), torch.cat(step_parts)
 
