@@ -34,6 +34,8 @@ from dvfb.nets import (
     BackwardMap,
     ForwardMap,
     make_target,
+    offdiag_mean,
+    orthonormality_loss,
     project_to_sphere,
     sample_z_prior,
     skill_values,
@@ -75,14 +77,6 @@ class FBConfig:
     cov_ridge: float = param(0.0, "Ridge added to Cov(B) before solving Cov x = z (D19).", at_least=0)
     fused_adam: bool = param(True, "Use torch's fused (single-kernel) Adam where available; false = "
                              "the multi-tensor (foreach) implementation. Same math either way.")
-
-
-def offdiag_mean(matrix: torch.Tensor) -> torch.Tensor:
-    """Mean over ``i != j`` of the last two (square) dimensions, without building a mask."""
-    n = matrix.shape[-1]
-    total = matrix.sum(dim=(-2, -1))
-    diag = matrix.diagonal(dim1=-2, dim2=-1).sum(-1)
-    return (total - diag) / (n * (n - 1))
 
 
 def implicit_reward(backward: torch.Tensor, z: torch.Tensor, ridge: float = 0.0) -> torch.Tensor:
@@ -297,8 +291,7 @@ class FBAgent(Agent):
         diag = m.diagonal(dim1=-2, dim2=-1).mean(-1)  # (2,)
         fb_loss = (0.5 * offdiag - diag).sum()
 
-        gram = backward @ backward.T
-        ortho_loss = offdiag_mean(gram.pow(2)) - 2 * gram.diagonal().mean()
+        ortho_loss = orthonormality_loss(backward)
         losses = {"fb_loss": fb_loss, "fb_offdiag": offdiag.mean(), "fb_diag": diag.mean(),
                   "ortho_loss": ortho_loss}
         total = fb_loss + c.ortho_coef * ortho_loss

@@ -50,6 +50,21 @@ class BackwardMap(nn.Module):
         return project_to_sphere(full_precision(self.net(x)))
 
 
+def offdiag_mean(matrix: torch.Tensor) -> torch.Tensor:
+    """Mean over ``i != j`` of the last two (square) dimensions, without building a mask."""
+    n = matrix.shape[-1]
+    total = matrix.sum(dim=(-2, -1))
+    diag = matrix.diagonal(dim1=-2, dim2=-1).sum(-1)
+    return (total - diag) / (n * (n - 1))
+
+
+def orthonormality_loss(features: torch.Tensor) -> torch.Tensor:
+    """``mean_{i!=j} G_ij^2 - 2 mean_i G_ii`` with ``G = features features^T`` (§7.10): the
+    regulariser that pushes ``E[f f^T]`` towards the identity (B of FB, phi of the SF family)."""
+    gram = features @ features.T
+    return offdiag_mean(gram.pow(2)) - 2 * gram.diagonal().mean()
+
+
 class TwinCritic(nn.Module):
     """``Q_k(s, a, z)``: a shared ``LNT([s, z, a] -> H)`` trunk and K heads ``H -> H -> 1`` (§4.4).
 

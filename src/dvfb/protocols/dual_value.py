@@ -52,8 +52,10 @@ class DualValueFinetuner(Finetuner):
         nn.Module.__init__(self)
         self.agent, self.config = agent, config
         fb = agent.config
-        freeze_(agent.forward_map)
-        freeze_(agent.backward_map)
+        # Everything pre-trained but the actor stays fixed (F and B; SF's psi and phi).
+        for module in agent.pretrained_modules().values():
+            if module is not agent.actor:
+                freeze_(module)
         self.register_buffer("z", z.detach().clone().to(agent.device))
         self.task_critic = TwinCritic(agent.obs_dim, agent.action_dim, fb.z_dim, fb.hidden_dim).to(agent.device)
         self.task_critic_target = make_target(self.task_critic)

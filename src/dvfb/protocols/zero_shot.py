@@ -3,6 +3,8 @@
 * :class:`RewardInference` (``reward_inference``; FB, DVFB): collect reward-labelled steps in the
   task with prior skills, let the agent infer the task's skill from a sample of them
   (:meth:`~dvfb.agents.base.Agent.infer_skill`); also from reward-function samples or a goal;
+* :class:`FeatureRegression` (``feature_regression``; the successor features): the same data with
+  skills on the pre-training schedule, the skill from a regression of the rewards on the features;
 * :class:`SinglePolicy` (``single_policy``; the exploration baselines): no skill, the one policy;
 * :class:`SkillSelection` (``skill_selection``; the skill-discovery methods, paper App. C.3): roll
   out a new prior skill every episode for the same budget of reward-labelled steps, with mean
@@ -64,10 +66,12 @@ class SkillSelectionConfig:
 
 
 def collect_inference_data(agent, env, steps: int, random_action_steps: int, rng: np.random.Generator,
-                           max_episode_length: int = 1000, progress=None) -> ReplayBuffer:
+                           max_episode_length: int = 1000, progress=None, skill_schedule: bool = False
+                           ) -> ReplayBuffer:
     """``steps`` reward-labelled steps in the task (§8.1).
 
-    A new skill from the method's prior at every step; uniform actions for the first
+    A new skill from the method's prior at every step (or, with ``skill_schedule``, when the
+    method's pre-training rule says so: ``agent.skill.due``); uniform actions for the first
     ``random_action_steps`` steps, then rollout samples of ``pi(s, skill)``.
     """
     obs_dim = env.observation_space.shape[0]
@@ -77,10 +81,12 @@ def collect_inference_data(agent, env, steps: int, random_action_steps: int, rng
     done = True
     obs = None
     for step in range(steps):
+        episode_start = done
         if done:
             obs, _ = env.reset()
             buffer.start_episode(obs)
-        z = agent.sample_skill(1)[0]
+        if not skill_schedule or agent.skill.due(step, episode_start):
+            z = agent.sample_skill(1)[0]
         if step < random_action_steps:
             action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
         else:
@@ -120,13 +126,14 @@ class RewardInference(ZeroShotProtocol):
     name = "reward_inference"
     config_cls = InferenceConfig
     sources = ("rewards", "reward_fn", "goal")
+    skill_schedule = False  # a new prior skill at every collection step (§8.1)
 
     def task_steps(self, source: str = "rewards") -> int:
         return self.config.steps if source == "rewards" else 0
 
     def task_skill(self, agent, env, rng, episode_length, *, progress=None, keep_data=False):
         buffer = collect_inference_data(agent, env, self.config.steps, self.config.random_action_steps, rng,
-                                        episode_length, progress=progress)
+                                        episode_length, progress=progress, skill_schedule=self.skill_schedule)
         skill, info = infer_task_vector(agent, buffer, self.config)
         if keep_data:
             info["buffer"] = buffer
@@ -141,6 +148,35 @@ class RewardInference(ZeroShotProtocol):
         check_finite("--goal", goal)
         return agent.skill_from_goal(torch.as_tensor(np.asarray(goal), dtype=torch.float32)), {
             "goal": np.asarray(goal, dtype=float).tolist()}
+
+
+@dataclass
+class RegressionConfig:
+    """Zero-shot of the successor-feature family: regress the task reward on the features."""
+
+    steps: int = param(10_000, "Reward-labelled environment steps collected in the task (prior skills on the "
+                       "pre-training schedule).", at_least=1)
+    random_action_steps: int = param(4000, "Of those, the first steps use uniform actions.", at_least=0)
+    samples: int = param(10_000, "Transitions drawn from the collected data for the regression.", at_least=1)
+    with_replacement: bool = param(True, "Draw the regression samples with replacement (authors' driver).")
+    eval_episodes: int = param(50, "Mean-action evaluation episodes with the inferred z_r.", at_least=1)
+
+    def check(self) -> None:
+        if self.random_action_steps > self.steps:
+            raise ConfigError(f"--inference.random-action-steps {self.random_action_steps} must be at most "
+                              f"--inference.steps {self.steps}")
+
+
+@register_zero_shot
+class FeatureRegression(RewardInference):
+    """Successor features (paper App. C; docs/methods.md, "Successor features"): reward-labelled
+    steps with prior skills redrawn on the pre-training schedule, then the agent's least-squares
+    regression of the rewards on its features gives ``z_r`` (:meth:`~dvfb.agents.base.Agent.infer_skill`)."""
+
+    name = "feature_regression"
+    config_cls = RegressionConfig
+    sources = ("rewards", "reward_fn")
+    skill_schedule = True
 
 
 @register_zero_shot
