@@ -307,7 +307,14 @@ class FBAgent(Agent):
             losses["implicit_reward"] = reward.mean()
             total = total + c.q_loss_coef * q_loss
         losses["fb_total"] = total
+        losses.update(self._fb_penalties(batch, z, forward, backward))
         return losses
+
+    def _fb_penalties(self, batch: Batch, z: torch.Tensor, forward: torch.Tensor,
+                      backward: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Extra terms of the FB step from the batch's F and B, weighted in :meth:`_fb_step`
+        (conservative FB: its penalty). FB: none."""
+        return {}
 
     def _fb_step(self, batch, z, next_action, backward, target_input, metrics) -> None:
         losses = self.fb_losses(batch, z, next_action, backward, target_input)

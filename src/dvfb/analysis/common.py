@@ -43,7 +43,8 @@ def method_name(run_config: Any, finetune: Any | None = None) -> str:
 
     The registry decides: each method's :class:`~dvfb.agents.registry.AgentSpec` names its variants
     (DVFB: ``dvfb_wo_ce`` for ``use_ce = false``, ``dvfb_<reward>`` for the Table 8 rewards; the FB
-    family's fine-tuning ablations append ``_wo_svf`` and ``_wo_map``). ``run_config`` is the
+    family's fine-tuning ablations append ``_wo_svf`` and ``_wo_map``). A run trained offline on a
+    dataset appends ``@`` and the dataset directory's name (``vcfb@rnd_walker``). ``run_config`` is the
     pre-training run's config; ``finetune`` a fine-tuning run's ``finetune`` section.
     """
     from dvfb.agents import get_spec
@@ -53,7 +54,11 @@ def method_name(run_config: Any, finetune: Any | None = None) -> str:
         spec = get_spec(agent)
     except DvfbError:
         return str(agent)
-    return spec.method_label(run_config, finetune)
+    label = spec.method_label(run_config, finetune)
+    dataset = _field(run_config, "dataset", None)
+    if dataset:  # offline: the method on a dataset is its own row (docs/methods.md, "Offline training")
+        label += "@" + Path(dataset).name
+    return label
 
 
 def _field(config: Any, name: str, default: Any) -> Any:
@@ -70,8 +75,10 @@ def method_sort_key(name: str) -> tuple:
     if name == "random":
         return (3, 0, 0, 0, name)
     names = list(AGENTS)
-    # The longest registered name the label starts with: "dvfb_wo_ce" belongs to "dvfb".
-    owners = [n for n in names if name == n or name.startswith(n + "_")]
+    # The longest registered name the label starts with: "dvfb_wo_ce" belongs to "dvfb", the
+    # paper's "SF-Lap" to "sf"; an offline run's "@dataset" does not count.
+    key = name.split("@", 1)[0].lower().replace("-", "_")
+    owners = [n for n in names if key == n or key.startswith(n + "_") or key.replace("_", "") == n]
     if owners:
         owner = max(owners, key=len)
         return (0, AGENTS[owner].column, names.index(owner), len(name), name)

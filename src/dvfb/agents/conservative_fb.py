@@ -1,0 +1,168 @@
+"""Conservative FB (Jeen et al., NeurIPS 2024): VC-FB and MC-FB, FB with a CQL-style penalty for
+offline data (docs/methods.md, "Conservative FB").
+
+FB's update is unchanged; its FB step adds ``alpha * P`` with one of two penalties that push down
+the values of actions the data do not support, relative to the dataset's actions:
+
+* ``value`` (VC-FB): ``P = sum_k [ mean_i LSE_j Q_k(x_ij, a_ij, z_i) - mean_i Q_k(s_i, a_i, z_i) ]``
+  with ``Q_k = F_k . z``;
+* ``measure`` (MC-FB): the same on every successor measure ``M_k = F_k . B(s'_l)`` of the batch:
+  ``P = sum_k [ mean_{i,l} LSE_j M_k(x_ij, a_ij, z_i; s'_l) - mean_{i,l} M_k(s_i, a_i, z_i; s'_l) ]``
+  (B keeps its gradient here, so the penalty also shapes B).
+
+The ``j`` index runs over ``samples`` actions per row (12 by default, as in the authors' code):
+half uniform in the action box at ``s_i``, and the rest split equally between policy samples at
+``s_i``, policy samples at ``s'_i`` (evaluated at ``s'_i``) and copies of the dataset action --
+without density corrections, at temperature 1, with the training z of the row. ``alpha`` is tuned
+by dual ascent on ``log alpha`` (starting at ``alpha = 1``) so that ``P`` settles at ``target``
+(50); with ``lagrange = false`` it is the constant ``alpha``.
+
+VC-FB and MC-FB are two registered methods (``vcfb``, ``mcfb``) on this one class: FB's agent with
+its ``conservative`` section.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from dvfb.agents.fb import FB_SMALL, FBAgent, FBConfig, fb_finetune_label
+from dvfb.config import param
+from dvfb.errors import ConfigError
+from dvfb.execution import PerfConfig
+from dvfb.nets import adam, skill_values, training_action
+
+PENALTIES = ("value", "measure")
+
+
+@dataclass
+class ConservativeConfig:
+    """The conservative penalty of VC-FB / MC-FB (docs/methods.md, "Conservative FB")."""
+
+    penalty: str = param("value", "Which values are pushed down: Q = F.z (value, VC-FB) or M = F.B (measure, MC-FB).",
+                         PENALTIES)
+    samples: int = param(12, "Actions per batch row in the log-sum-exp (authors: 12).", at_least=4)
+    uniform_share: float = param(0.5, "Share of those actions drawn uniformly; the rest are split equally "
+                                 "between pi(s), pi(s') and the dataset action.", at_least=0, at_most=1)
+    lagrange: bool = param(True, "Tune alpha by dual ascent towards --conservative.target; false: constant "
+                           "--conservative.alpha.")
+    target: float = param(50.0, "The penalty value alpha's dual ascent aims at (authors: 50).")
+    alpha: float = param(0.01, "The constant weight with --conservative.lagrange false.", at_least=0)
+    alpha_lr: float = param(1e-4, "Adam learning rate of log alpha.", above=0)
+    alpha_max: float = param(1e6, "Upper clamp of alpha.", above=0)
+
+    def counts(self) -> tuple[int, int]:
+        """(uniform actions, actions of each of the three other groups) per row."""
+        uniform = round(self.samples * self.uniform_share)
+        rest = self.samples - uniform
+        if rest % 3:
+            raise ConfigError(f"--conservative.samples {self.samples} with --conservative.uniform-share "
+                              f"{self.uniform_share} leaves {rest} actions, which do not split into three equal groups")
+        return uniform, rest // 3
+
+
+class ConservativeFBAgent(FBAgent):
+    """FB with the value- or measure-conservative penalty (see the module docstring)."""
+
+    name = "conservative_fb"
+
+    @classmethod
+    def from_config(cls, obs_dim, action_dim, config, device="cpu") -> ConservativeFBAgent:
+        return cls(obs_dim, action_dim, config.fb, config.conservative, device, config.perf)
+
+    def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, conservative: ConservativeConfig,
+                 device: str | torch.device = "cpu", perf: PerfConfig | None = None):
+        if conservative.penalty not in PENALTIES:
+            raise ValueError(f"penalty must be one of {PENALTIES}, got {conservative.penalty!r}")
+        self.conservative = conservative
+        self.num_uniform, self.num_each = conservative.counts()
+        super().__init__(obs_dim, action_dim, config, device, perf)
+
+    def _build_extra(self) -> None:
+        # log alpha = 0: alpha starts at 1 (the authors' initial Lagrange multiplier).
+        self.log_alpha = torch.nn.Parameter(torch.zeros(()))
+
+    def _build_extra_optimizers(self) -> None:
+        self.alpha_optimizer = adam([self.log_alpha], self.conservative.alpha_lr, fused=False)
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {**super().optimizers(), "alpha_optimizer": self.alpha_optimizer}
+
+    # The penalty -----------------------------------------------------------------------------------
+    @torch.no_grad()
+    def penalty_actions(self, batch, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The sampled (non-dataset) actions, their states and z's, ``(J' N, .)`` each, group by group:
+        uniform at s, pi(s, z) at s, pi(s', z) at s' (training noise)."""
+        c = self.config
+        n = batch.obs.shape[0]
+        uniform = torch.rand(self.num_uniform * n, self.action_dim, device=self.device, generator=self.generator) * 2 - 1
+        z_each = z.repeat(self.num_each, 1)
+        obs_each, next_each = batch.obs.repeat(self.num_each, 1), batch.next_obs.repeat(self.num_each, 1)
+        policy = training_action(self.actor(obs_each, z_each), c.stddev, c.stddev_clip, self.generator)
+        next_policy = training_action(self.actor(next_each, z_each), c.stddev, c.stddev_clip, self.generator)
+        states = torch.cat([batch.obs.repeat(self.num_uniform, 1), obs_each, next_each])
+        return states, torch.cat([uniform, policy, next_policy]), z.repeat(self.num_uniform + 2 * self.num_each, 1)
+
+    def conservative_penalty(self, batch, z: torch.Tensor, forward: torch.Tensor,
+                             backward: torch.Tensor) -> torch.Tensor:
+        """``P`` of the module docstring; ``forward`` is F at the dataset actions, ``(2, N, d)``,
+        ``backward`` the online B of the batch's s', ``(N, d)``."""
+        n = batch.obs.shape[0]
+        states, actions, zs = self.penalty_actions(batch, z)
+        sampled = self.net_runner(self.forward_map, states, actions, zs)  # (2, J'N, d)
+        sampled = sampled.view(2, -1, n, sampled.shape[-1])  # (2, J', N, d)
+        if self.conservative.penalty == "value":
+            dataset_values = skill_values(forward, z)  # (2, N)
+            sampled_values = (sampled * z).sum(-1)  # (2, J', N)
+        else:
+            dataset_values = torch.matmul(forward, backward.T)  # (2, N, N)
+            sampled_values = torch.matmul(sampled, backward.T)  # (2, J', N, N)
+        # The dataset action is one of the groups inside the log-sum-exp (its num_each copies).
+        copies = dataset_values.unsqueeze(1).expand(-1, self.num_each, *dataset_values.shape[1:])
+        logsumexp = torch.cat([sampled_values, copies], dim=1).logsumexp(dim=1)  # (2, N) or (2, N, N)
+        return (logsumexp.flatten(1).mean(-1) - dataset_values.flatten(1).mean(-1)).sum()
+
+    def alpha_step(self, penalty: torch.Tensor) -> torch.Tensor:
+        """One dual-ascent step on log alpha (alpha grows while P > target); the new alpha, detached."""
+        c = self.conservative
+        if not c.lagrange:
+            return torch.tensor(c.alpha, device=self.device)
+        alpha = self.log_alpha.exp().clamp(0, c.alpha_max)
+        alpha_loss = -0.5 * alpha * (penalty.detach() - c.target)
+        self.alpha_optimizer.zero_grad(set_to_none=True)
+        alpha_loss.backward()
+        self.alpha_optimizer.step()
+        return self.log_alpha.detach().exp().clamp(0, c.alpha_max)
+
+    def _fb_penalties(self, batch, z, forward, backward) -> dict[str, torch.Tensor]:
+        return {"conservative_penalty": self.conservative_penalty(batch, z, forward, backward)}
+
+    def _fb_step(self, batch, z, next_action, backward, target_input, metrics) -> None:
+        losses = self.fb_losses(batch, z, next_action, backward, target_input)
+        penalty = losses["conservative_penalty"]
+        alpha = self.alpha_step(penalty)
+        total = losses["fb_total"] + alpha * penalty
+        self.fb_optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        self.fb_optimizer.step()
+        metrics.update({k: v.detach() for k, v in losses.items()})
+        metrics.update(conservative_alpha=alpha, fb_conservative_total=total.detach())
+
+
+# Registration (beside the agent): two methods, one class.
+from dvfb.agents.registry import AgentSpec, register  # noqa: E402
+
+
+def conservative_label(name: str):
+    return lambda run, finetune: fb_finetune_label(name, finetune)
+
+
+for _name, _penalty, _paper in (("vcfb", "value", "VC-FB"), ("mcfb", "measure", "MC-FB")):
+    register(AgentSpec(
+        name=_name, agent_cls=ConservativeFBAgent, family="forward-backward",
+        summary=f"{_paper}: FB with the {_penalty}-conservative penalty and a tuned weight, for offline data "
+                "(Jeen et al.)",
+        sections={"fb": FBConfig, "conservative": ConservativeConfig}, zero_shot="reward_inference",
+        finetuner="dual_value", defaults={"conservative": {"penalty": _penalty}},
+        presets={"small": {"fb": FB_SMALL}}, label=conservative_label(_name), column=3))
