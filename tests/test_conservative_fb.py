@@ -92,7 +92,7 @@ def test_alpha_rises_above_the_target_and_falls_below_it():
     down = agent2.alpha_step(torch.tensor(10.0, dtype=torch.float64))
     assert float(down) < 1.0
     fixed, _, _ = agent_and_batch("value", lagrange=False, alpha=0.25)
-    assert float(fixed.alpha_step(torch.tensor(80.0))) == 0.25 and float(fixed.log_alpha) == 0.0
+    assert float(fixed.alpha_step(torch.tensor(80.0))) == 0.25 and float(fixed.log_alpha.detach()) == 0.0
 
 
 def test_sample_groups_must_split_evenly():

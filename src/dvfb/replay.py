@@ -4,8 +4,9 @@ What is stored
     Every environment step of every stored episode: the observation, the action taken in it, the
     reward and environment discount returned with the next observation, the rollout skill z (as
     wide as the agent's declared skill: ``z_dim`` 0 for agents without one), and any further
-    per-step columns declared by what needs them (``columns={"physics": 18}``: the next issues'
-    physics states for datasets). Everything is float32.
+    per-step columns declared by what needs them (``columns={"name": width}``, or a :class:`Column`
+    with a dtype and a row). Everything is float32 except float64 columns (the physics states that
+    datasets record, ``Column(width, "float64", "obs")``, dvfb.datasets), which live in a side array.
 
 Layout
     One preallocated array ``data[num_slots, max_episode_length + 1, width]``: an episode per slot,
@@ -20,6 +21,14 @@ Layout
     z_t)`` and is read from rows ``t``, ``t+1`` and ``t+2`` of one slot: it can never cross an
     episode boundary. The spec's "dummy zero action at the reset step" is the same information
     shifted by one row.
+
+    A declared column goes with the step (``row="step"``, the default: row ``t`` holds what
+    :meth:`ReplayBuffer.add` got with step ``t``) or with the observation (``row="obs"``: row ``t``
+    holds what came with ``obs_t``, from :meth:`ReplayBuffer.start_episode` for the reset
+    observation and from ``add`` with ``next_obs``; row ``T`` is filled too). Float64 columns are
+    stored in a second array ``data64[num_slots, max_episode_length + 1, width64]`` with the same
+    slots and rows, allocated only when one is declared, so that buffers without one cost and run
+    exactly as before.
 
 Eviction
     Slots form a ring, oldest episode first. Capacity is counted in transitions: whenever a step
@@ -62,8 +71,9 @@ Memory
     ``estimate_nbytes(2_000_000, 24, 6, 50)`` (2M Walker transitions: obs 24, action 6, z 50,
     float32, episodes of 1000 steps) = 657,000,336 bytes (626.6 MiB): 2,001 slots x 1,001 rows x
     82 floats, plus 16,008 bytes of episode lengths. Declared columns add their widths to the 82
-    (``estimate_nbytes(..., columns=...)``). The host staging copy used on an accelerator
-    (one episode, 328 kB here) is not counted.
+    (float32) or to the side array's row (float64, 8 bytes a value): ``estimate_nbytes(...,
+    columns=...)``. The host staging copy used on an accelerator (one episode, 328 kB here) is not
+    counted.
 """
 
 from __future__ import annotations
@@ -80,6 +90,9 @@ from dvfb.errors import CheckpointError, ConfigError
 _STATE_FORMAT = 1
 _BYTES_PER_FLOAT = 4
 _BYTES_PER_LENGTH = 8
+_DTYPES = {"float32": (np.float32, torch.float32), "float64": (np.float64, torch.float64)}
+COLUMN_ROWS = ("step", "obs")
+_RESERVED_COLUMNS = ("skill", "obs", "action", "reward", "discount")
 
 
 @dataclass
@@ -92,7 +105,9 @@ class Batch:
     ``future_obs`` is ``obs_{t+2}`` when it was requested, else None.
     ``z`` is the stored rollout skill, (B, z_dim), or None when the buffer has no skill column.
     ``columns`` holds the other declared per-step columns of ``s_t``'s row by name (empty unless
-    the buffer declares some, e.g. physics states for datasets).
+    the buffer declares some, e.g. physics states for datasets); a column that goes with the
+    observation (``Column(..., row="obs")``) also comes as ``next_<name>``, its value with
+    ``next_obs``.
     """
 
     obs: torch.Tensor
@@ -130,12 +145,55 @@ class Batch:
                      {k: move(v) for k, v in self.columns.items()})
 
 
+@dataclass(frozen=True)
+class Column:
+    """A declared per-step column of a :class:`ReplayBuffer` (module docstring, "Layout").
+
+    ``width`` values a row; ``dtype`` "float32" (in the main array) or "float64" (in the side
+    array); ``row`` "step" (written by ``add`` into the step's row) or "obs" (written with the
+    observation it goes with: by ``start_episode`` and by ``add`` with ``next_obs``).
+    """
+
+    width: int
+    dtype: str = "float32"
+    row: str = "step"
+
+    @classmethod
+    def of(cls, name: str, spec) -> Column:
+        """A column from what a caller (an int width, a Column) or a saved state (a dict) gives."""
+        if isinstance(spec, dict):
+            spec = cls(**spec) if "width" in spec and set(spec) <= {"width", "dtype", "row"} else None
+        elif isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
+            spec = cls(int(spec))
+        if (not isinstance(spec, cls) or isinstance(spec.width, bool) or not isinstance(spec.width, (int, np.integer))
+                or spec.width < 1 or spec.dtype not in _DTYPES or spec.row not in COLUMN_ROWS
+                or name in _RESERVED_COLUMNS or name.startswith("next_")):
+            raise ConfigError(f"replay column {name!r} declared as {spec!r}: names must be new (and not next_*), "
+                              f"widths integers >= 1, dtypes one of {', '.join(_DTYPES)}, rows one of "
+                              f"{', '.join(COLUMN_ROWS)}")
+        return cls(int(spec.width), spec.dtype, spec.row)
+
+    def saved(self) -> int | dict:
+        """How a state records it: a plain float32 step column as its width (as states always did)."""
+        return self.width if (self.dtype, self.row) == ("float32", "step") else dataclasses.asdict(self)
+
+
+PHYSICS_COLUMN = "physics"
+
+
+def physics_columns(width: int) -> dict[str, Column]:
+    """The declared column of a replay that records physics states (``--replay.record-physics``):
+    ``physics``, float64, with each observation (docs/methods.md, "Datasets")."""
+    return {PHYSICS_COLUMN: Column(width, "float64", "obs")}
+
+
 REPLAY_SAMPLINGS = ("uniform", "loader_shards")
 
 
 @dataclass
 class ReplaySamplingConfig:
-    """How pre-training batches are drawn from the replay (docs/methods.md, "Replay sampling")."""
+    """How pre-training batches are drawn from the replay (docs/methods.md, "Replay sampling"), and
+    whether the replay records physics states (docs/methods.md, "Datasets")."""
 
     sampling: str = param("uniform", "uniform: every stored transition equally likely, the episode in progress "
                           "included; loader_shards: as the authors' (URLB's) DataLoader delivers them, finished "
@@ -145,6 +203,10 @@ class ReplaySamplingConfig:
                                 "belongs to shard g mod W and batch k comes from shard k mod W.", at_least=1)
     loader_refresh: int = param(1000, "loader_shards: a shard looks for newly finished episodes every this many of "
                                 "its own samples (their fetch_every).", at_least=1)
+    record_physics: bool = param(False, "Pre-training also stores the environment's physics state (float64) with "
+                                 "every observation, the reset one included, so that `dvfb dataset export` can write "
+                                 "the run's replay as a dataset that `dvfb dataset relabel` relabels exactly for any "
+                                 "task of the domain (docs/methods.md, \"Datasets\").")
 
     def sampler(self) -> LoaderShards | None:
         """The replay's sampler: None for uniform sampling."""
@@ -243,13 +305,14 @@ class ReplayBuffer:
         stage_on_host: write steps into a host staging episode and copy them to the storage before
             sampling. Default: only when ``device`` is not the CPU. Forcing it on CPU exercises the
             accelerator code path in tests.
-        columns: declared per-step columns, by name and width.
+        columns: declared per-step columns, by name: a width (float32, with the step) or a
+            :class:`Column` (or the dict a state records for one).
         sampler: how :meth:`sample` draws; None is uniform over the stored transitions.
     """
 
     def __init__(self, capacity: int, obs_dim: int, action_dim: int, z_dim: int = 0,
                  max_episode_length: int = 1000, device: str | torch.device = "cpu",
-                 stage_on_host: bool | None = None, columns: dict[str, int] | None = None,
+                 stage_on_host: bool | None = None, columns: dict[str, int | Column | dict] | None = None,
                  sampler: LoaderShards | None = None) -> None:
         for name, value, minimum in (("capacity", capacity, 1), ("obs_dim", obs_dim, 1),
                                      ("action_dim", action_dim, 1), ("z_dim", z_dim, 0),
@@ -274,12 +337,11 @@ class ReplayBuffer:
         if not self._staged and self.device.type != "cpu":
             raise ConfigError(f"a replay buffer on {self.device} needs stage_on_host")
 
-        # Declared per-step columns after the skill, by name and width (what needs them declares
-        # them: e.g. physics states for datasets).
-        self.columns = {name: int(width) for name, width in (columns or {}).items()}
-        for name, width in self.columns.items():
-            if name in ("skill", "obs", "action", "reward", "discount") or width < 1:
-                raise ConfigError(f"replay column {name!r} of width {width}: names must be new and widths >= 1")
+        # Declared per-step columns after the skill (what needs them declares them: e.g. physics
+        # states for datasets), float32 ones in the main row, float64 ones in the side row.
+        self.column_specs = {name: Column.of(name, spec) for name, spec in (columns or {}).items()}
+        self.columns = {name: c.width for name, c in self.column_specs.items()}
+        self._obs_columns = {name for name, c in self.column_specs.items() if c.row == "obs"}
 
         # Column layout of one row.
         self._action_col = self.obs_dim
@@ -287,39 +349,49 @@ class ReplayBuffer:
         self._discount_col = self._reward_col + 1
         self._z_col = self._discount_col + 1
         self._column_slices: dict[str, slice] = {}
-        start = self._z_col + self.z_dim
-        for name, width in self.columns.items():
-            self._column_slices[name] = slice(start, start + width)
-            start += width
-        self.width = start
+        starts = {"float32": self._z_col + self.z_dim, "float64": 0}
+        for name, c in self.column_specs.items():
+            self._column_slices[name] = slice(starts[c.dtype], starts[c.dtype] + c.width)
+            starts[c.dtype] += c.width
+        self.width, self.width64 = starts["float32"], starts["float64"]
 
-        rows = self.max_episode_length + 1
-        shape = (self.num_slots, rows, self.width)
-        if self._staged:
-            self._store = torch.zeros(shape, dtype=torch.float32, device=self.device)
-            host = np.zeros((1, rows, self.width), dtype=np.float32)
-        else:
-            host = np.zeros(shape, dtype=np.float32)
-            self._store = torch.from_numpy(host)
-        self._host = host
+        self._host, self._store = self._allocate(self.width, "float32")
+        self._host64, self._store64 = self._allocate(self.width64, "float64") if self.width64 else (None, None)
+        host = self._host
         # Field views of the array that `add` writes into (storage on CPU, staging otherwise).
         self._w_obs = host[:, :, : self.obs_dim]
         self._w_action = host[:, :, self._action_col: self._reward_col]
         self._w_reward = host[:, :, self._reward_col]
         self._w_discount = host[:, :, self._discount_col]
         self._w_z = host[:, :, self._z_col: self._z_col + self.z_dim]
-        self._w_columns = {name: host[:, :, cols] for name, cols in self._column_slices.items()}
+        hosts = {"float32": self._host, "float64": self._host64}
+        self._w_columns = {name: hosts[self.column_specs[name].dtype][:, :, cols]
+                           for name, cols in self._column_slices.items()}
+        # Row offset of a column's value from the step's row: 1 for those that go with next_obs.
+        self._column_offsets = {name: int(c.row == "obs") for name, c in self.column_specs.items()}
         # Field views of the storage that sampling reads (torch, on `device`).
         self._s_obs = self._store[:, :, : self.obs_dim]
         self._s_action = self._store[:, :, self._action_col: self._reward_col]
         self._s_reward = self._store[:, :, self._reward_col: self._reward_col + 1]
         self._s_discount = self._store[:, :, self._discount_col: self._discount_col + 1]
         self._s_z = self._store[:, :, self._z_col: self._z_col + self.z_dim]
-        self._s_columns = {name: self._store[:, :, cols] for name, cols in self._column_slices.items()}
+        stores = {"float32": self._store, "float64": self._store64}
+        self._s_columns = {name: stores[self.column_specs[name].dtype][:, :, cols]
+                           for name, cols in self._column_slices.items()}
 
         self._lengths = np.zeros(self.num_slots, dtype=np.int64)  # transitions per slot
         self.sampler = sampler
         self._reset_bookkeeping()
+
+    def _allocate(self, width: int, dtype: str) -> tuple[np.ndarray, torch.Tensor]:
+        """(host array that ``add`` writes, storage that sampling reads) of one dtype's rows."""
+        np_dtype, torch_dtype = _DTYPES[dtype]
+        rows = self.max_episode_length + 1
+        shape = (self.num_slots, rows, width)
+        if self._staged:
+            return np.zeros((1, rows, width), dtype=np_dtype), torch.zeros(shape, dtype=torch_dtype, device=self.device)
+        host = np.zeros(shape, dtype=np_dtype)
+        return host, torch.from_numpy(host)
 
     def _reset_bookkeeping(self) -> None:
         self._lengths[:] = 0
@@ -338,18 +410,20 @@ class ReplayBuffer:
 
     @staticmethod
     def estimate_nbytes(capacity: int, obs_dim: int, action_dim: int, z_dim: int,
-                        max_episode_length: int = 1000, columns: dict[str, int] | None = None) -> int:
+                        max_episode_length: int = 1000, columns: dict[str, int | Column | dict] | None = None) -> int:
         """Bytes of preallocated storage for these sizes and declared columns (the value
         :attr:`nbytes` will have)."""
         slots = _num_slots(capacity, max_episode_length)
-        width = obs_dim + action_dim + 2 + z_dim + sum((columns or {}).values())
-        return (slots * (max_episode_length + 1) * width * _BYTES_PER_FLOAT
-                + slots * _BYTES_PER_LENGTH)
+        specs = [Column.of(name, spec) for name, spec in (columns or {}).items()]
+        row_bytes = (obs_dim + action_dim + 2 + z_dim) * _BYTES_PER_FLOAT + sum(
+            c.width * np.dtype(_DTYPES[c.dtype][0]).itemsize for c in specs)
+        return slots * (max_episode_length + 1) * row_bytes + slots * _BYTES_PER_LENGTH
 
     @property
     def nbytes(self) -> int:
         """Bytes of all preallocated storage (host staging on an accelerator excluded)."""
-        return self._store.numel() * self._store.element_size() + self._lengths.nbytes
+        side = 0 if self._store64 is None else self._store64.numel() * self._store64.element_size()
+        return self._store.numel() * self._store.element_size() + side + self._lengths.nbytes
 
     @property
     def num_episodes(self) -> int:
@@ -363,8 +437,12 @@ class ReplayBuffer:
     # ------------------------------------------------------------------------------------------
     # writing
 
-    def start_episode(self, obs: np.ndarray) -> None:
-        """Begin a new episode with its reset observation."""
+    def start_episode(self, obs: np.ndarray, **columns) -> None:
+        """Begin a new episode with its reset observation; ``columns`` are the declared columns that
+        go with the observation (``row="obs"``, each required)."""
+        if columns.keys() != self._obs_columns:
+            raise ValueError(f"this replay buffer stores the columns {sorted(self._obs_columns)} with each "
+                             f"observation; got {sorted(columns)}")
         if not (self._open and self._cur_len == 0):
             # (An episode without steps is simply restarted in its slot.)
             self._flush()
@@ -379,14 +457,16 @@ class ReplayBuffer:
             self._open = True
         self._flushed_rows = 0
         self._w_obs[self._write_slot, 0] = obs
+        for name, value in columns.items():
+            self._w_columns[name][self._write_slot, 0] = value
 
     def add(self, action, reward: float, discount: float, next_obs, z=None, **columns) -> None:
         """Record one environment step of the current episode.
 
         ``action`` was taken in the latest observation; ``reward`` and ``discount`` are what the
         environment returned together with ``next_obs``; ``z`` is the skill the action was chosen
-        for (required when ``z_dim > 0``); ``columns`` the declared columns of the step's row (each
-        required).
+        for (required when ``z_dim > 0``); ``columns`` the declared columns (each required): of the
+        step's row, or, for those that go with the observation, ``next_obs``'s.
         """
         t = self._cur_len
         if t >= self.max_episode_length or not self._open:
@@ -404,12 +484,46 @@ class ReplayBuffer:
             if columns.keys() != self.columns.keys():
                 raise ValueError(f"this replay buffer stores the columns {sorted(self.columns)}; got {sorted(columns)}")
             for name, value in columns.items():
-                self._w_columns[name][w, t] = value
+                self._w_columns[name][w, t + self._column_offsets[name]] = value
         self._cur_len = t + 1
         self._lengths[self._cur_slot] = t + 1
         self._num_transitions += 1
         while self._num_transitions > self.capacity:
             self._evict_oldest()
+
+    def add_episode(self, obs, action, reward, discount, z=None, **columns) -> None:
+        """Record a whole finished episode of ``T`` steps at once (a dataset's): ``obs`` (T+1, obs_dim),
+        ``action`` (T, action_dim), ``reward`` and ``discount`` (T,), ``z`` (T, z_dim) when
+        ``z_dim > 0``, and every declared column: (T, width) with the step, (T+1, width) with the
+        observation. The same as ``start_episode`` then ``T`` calls of ``add``, without the loop; the
+        episode is closed (finished) afterwards."""
+        obs, action = np.asarray(obs), np.asarray(action)
+        steps = action.shape[0] if action.ndim == 2 else -1
+        if not 1 <= steps <= self.max_episode_length or obs.shape != (steps + 1, self.obs_dim):
+            raise ValueError(f"an episode of {steps} steps needs obs ({steps} + 1, {self.obs_dim}) and at most "
+                             f"max_episode_length={self.max_episode_length} steps; got obs {obs.shape}, "
+                             f"action {action.shape}")
+        if columns.keys() != self.columns.keys():
+            raise ValueError(f"this replay buffer stores the columns {sorted(self.columns)}; got {sorted(columns)}")
+        if self.z_dim and z is None:
+            raise ValueError(f"this replay buffer stores z (z_dim={self.z_dim}); pass z=")
+        self.start_episode(obs[0], **{name: columns[name][0] for name in self._obs_columns})
+        w = self._write_slot
+        self._w_obs[w, : steps + 1] = obs
+        self._w_action[w, :steps] = action
+        self._w_reward[w, :steps] = np.reshape(reward, steps)
+        self._w_discount[w, :steps] = np.reshape(discount, steps)
+        if self.z_dim:
+            self._w_z[w, :steps] = z
+        for name, value in columns.items():
+            self._w_columns[name][w, : steps + self._column_offsets[name]] = value
+        self._cur_len = steps
+        self._lengths[self._cur_slot] = steps
+        self._num_transitions += steps
+        while self._num_transitions > self.capacity:
+            self._evict_oldest()
+        self._flush()
+        self._open = False
 
     def _raise_cannot_add(self) -> None:
         if not self._open:
@@ -438,8 +552,9 @@ class ReplayBuffer:
         # the next step, so it is copied again by the next flush.
         begin, end = self._flushed_rows, self._cur_len + 1
         if begin < end:
-            rows = torch.from_numpy(self._host[0, begin:end])
-            self._store[self._cur_slot, begin:end].copy_(rows)
+            self._store[self._cur_slot, begin:end].copy_(torch.from_numpy(self._host[0, begin:end]))
+            if self._store64 is not None:
+                self._store64[self._cur_slot, begin:end].copy_(torch.from_numpy(self._host64[0, begin:end]))
             self._flushed_rows = self._cur_len
 
     # ------------------------------------------------------------------------------------------
@@ -518,8 +633,16 @@ class ReplayBuffer:
             next_obs=self._s_obs[slot, step + 1],
             future_obs=self._s_obs[slot, step + 2] if need_future else None,
             z=self._s_z[slot, step] if self.z_dim else None,
-            columns={name: view[slot, step] for name, view in self._s_columns.items()},
+            columns=self._gather_columns(slot, step, step + 1),
         )
+
+    def _gather_columns(self, slot: torch.Tensor, step: torch.Tensor, next_step: torch.Tensor) -> dict:
+        """The declared columns of rows ``step`` and, for those with the observation, ``next_<name>``
+        of rows ``next_step`` (the batch's next_obs)."""
+        out = {name: view[slot, step] for name, view in self._s_columns.items()}
+        for name in self._obs_columns:
+            out[f"next_{name}"] = self._s_columns[name][slot, next_step]
+        return out
 
     def _gather_nstep(self, slot: torch.Tensor, step: torch.Tensor, gamma: float, need_future: bool,
                       nstep: int) -> Batch:
@@ -539,7 +662,7 @@ class ReplayBuffer:
             next_obs=self._s_obs[slot, step + nstep],
             future_obs=self._s_obs[slot, step + 2] if need_future else None,
             z=self._s_z[slot, step] if self.z_dim else None,
-            columns={name: view[slot, step] for name, view in self._s_columns.items()},
+            columns=self._gather_columns(slot, step, step + nstep),
         )
 
     # ------------------------------------------------------------------------------------------
@@ -550,27 +673,29 @@ class ReplayBuffer:
                 "action_dim": self.action_dim, "z_dim": self.z_dim,
                 "max_episode_length": self.max_episode_length}
         if self.columns:  # only then: states of buffers without declared columns read as before
-            info["columns"] = dict(self.columns)
+            info["columns"] = {name: c.saved() for name, c in self.column_specs.items()}
         return info
 
     def state_dict(self) -> dict:
         """The stored episodes, compactly (only filled rows), as CPU tensors and plain values.
 
         Loadable with ``torch.load(weights_only=True)``. Slot positions are not kept: episodes are
-        saved in ring order, which is all that sampling depends on.
+        saved in ring order, which is all that sampling depends on. ``rows`` holds the float32 rows,
+        episode after episode (``lengths[i] + 1`` rows each); with float64 columns, ``rows_float64``
+        their rows in the same order.
         """
         self._flush()
         slots = self._ring_slots()
         lengths = self._lengths[slots].copy()
         rows_per_episode = lengths + 1
-        slot_index = np.repeat(slots, rows_per_episode)
-        row_index = np.arange(int(rows_per_episode.sum())) - np.repeat(
-            np.cumsum(rows_per_episode) - rows_per_episode, rows_per_episode)
-        rows = self._store[torch.from_numpy(slot_index).to(self.device),
-                           torch.from_numpy(row_index).to(self.device)].cpu()
+        slot_index = torch.from_numpy(np.repeat(slots, rows_per_episode)).to(self.device)
+        row_index = torch.from_numpy(np.arange(int(rows_per_episode.sum())) - np.repeat(
+            np.cumsum(rows_per_episode) - rows_per_episode, rows_per_episode)).to(self.device)
         state = {"format": _STATE_FORMAT, **self._shape_info(),
-                 "episode_open": self._open, "lengths": torch.from_numpy(lengths), "rows": rows,
-                 "episodes_begun": self._episodes_begun}
+                 "episode_open": self._open, "lengths": torch.from_numpy(lengths),
+                 "rows": self._store[slot_index, row_index].cpu(), "episodes_begun": self._episodes_begun}
+        if self._store64 is not None:
+            state["rows_float64"] = self._store64[slot_index, row_index].cpu()
         if self.sampler is not None:
             state["sampler"] = self.sampler.state_dict()
         return state
@@ -589,6 +714,7 @@ class ReplayBuffer:
                                       + "; ".join(mismatched) + ")")
             lengths = torch.as_tensor(state["lengths"]).to(torch.int64).numpy()
             rows = torch.as_tensor(state["rows"])
+            rows64 = None if self._store64 is None else torch.as_tensor(state["rows_float64"])
             episode_open = bool(state["episode_open"])
             # States written before the count was kept: no episode had been evicted in the runs
             # that could use it (the loader shards came with it).
@@ -613,22 +739,24 @@ class ReplayBuffer:
         if tuple(rows.shape) != (expected_rows, self.width) or rows.dtype != torch.float32:
             problems.append(f"rows of shape {tuple(rows.shape)} and dtype {rows.dtype}, expected "
                             f"({expected_rows}, {self.width}) float32")
+        if rows64 is not None and (tuple(rows64.shape) != (expected_rows, self.width64)
+                                   or rows64.dtype != torch.float64):
+            problems.append(f"float64 rows of shape {tuple(rows64.shape)} and dtype {rows64.dtype}, expected "
+                            f"({expected_rows}, {self.width64}) float64")
         if episode_open and num_episodes == 0:
             problems.append("an open episode but no episodes")
         if problems:
             raise CheckpointError("replay state is inconsistent: " + "; ".join(problems))
 
         self._reset_bookkeeping()
-        if self._staged:
-            self._store.zero_()
-        else:
-            self._host.fill(0.0)
         rows_per_episode = lengths + 1
-        slot_index = np.repeat(np.arange(num_episodes), rows_per_episode)
-        row_index = np.arange(expected_rows) - np.repeat(
-            np.cumsum(rows_per_episode) - rows_per_episode, rows_per_episode)
-        self._store[torch.from_numpy(slot_index).to(self.device),
-                    torch.from_numpy(row_index).to(self.device)] = rows.to(self.device)
+        slot_index = torch.from_numpy(np.repeat(np.arange(num_episodes), rows_per_episode)).to(self.device)
+        row_index = torch.from_numpy(np.arange(expected_rows) - np.repeat(
+            np.cumsum(rows_per_episode) - rows_per_episode, rows_per_episode)).to(self.device)
+        for store, saved in ((self._store, rows), (self._store64, rows64)):
+            if store is not None:
+                store.zero_()  # on CPU the host array itself
+                store[slot_index, row_index] = saved.to(self.device)
         self._lengths[:num_episodes] = lengths
         self._num_episodes = num_episodes
         self._num_transitions = int(lengths.sum())
@@ -640,6 +768,7 @@ class ReplayBuffer:
             self._write_slot = 0 if self._staged else self._cur_slot
             if self._staged:
                 # The staging copy must hold the episode in progress; all of it is on the device.
-                last = rows[expected_rows - self._cur_len - 1:].numpy()
-                self._host[0, : self._cur_len + 1] = last
+                self._host[0, : self._cur_len + 1] = rows[expected_rows - self._cur_len - 1:].numpy()
+                if rows64 is not None:
+                    self._host64[0, : self._cur_len + 1] = rows64[expected_rows - self._cur_len - 1:].numpy()
                 self._flushed_rows = self._cur_len

@@ -1,6 +1,6 @@
 """The ``dvfb`` command line, one module per command: tasks and agents (:mod:`~dvfb.cli.info`), pretrain,
 zeroshot, finetune, supervised (the reference), random-policy, demo, sweep, report, the analyses (analyze-value,
-analyze-exploration) and video.
+analyze-exploration), video and dataset (export and relabel).
 
 Every option of the typed run configuration is a flag (nested fields as ``--fb.hidden-dim``), shown
 with its default in ``--help``. Errors caused by input (unknown task, bad run directory, mismatched
@@ -15,12 +15,13 @@ import logging
 import sys
 
 from dvfb import __version__
-from dvfb.cli import analyze, demo, finetune, info, pretrain, random_policy, report, supervised, sweep, video, zeroshot
+from dvfb.cli import (analyze, dataset, demo, finetune, info, pretrain, random_policy, report, supervised, sweep, video,
+                      zeroshot)
 from dvfb.cli.common import Formatter
 from dvfb.errors import DvfbError, RunInterrupted
 
 # The order of `dvfb --help`.
-COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo, sweep, report, analyze, video)
+COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo, sweep, report, analyze, video, dataset)
 
 
 def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:

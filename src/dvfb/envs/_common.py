@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 INF = float("inf")
@@ -56,6 +58,60 @@ def mujoco_state(model, data) -> list[float]:
     state = np.empty(mujoco.mj_stateSize(model, spec), dtype=np.float64)
     mujoco.mj_getState(model, data, state, spec)
     return state.tolist()
+
+
+# ------------------------------------------------------------------------------------------------
+# Datasets: the physics state recorded with every observation (docs/methods.md, "Datasets")
+
+# MuJoCo's state parts a dataset row holds, in MuJoCo's state order: its "physics" state (positions,
+# velocities, actuator activations, actuator delay history), the controls (the point-mass reward
+# reads them: physics.control()) and the mocap bodies' poses (Meta-World's hand target; none in
+# DMC). Time, the solver's warm start and applied forces are left out: no reward reads them and the
+# position and velocity stages that the rewards read do not depend on them.
+PHYSICS_PARTS = ("qpos", "qvel", "act", "history", "ctrl", "mocap_pos", "mocap_quat")
+
+
+@functools.cache
+def _physics_bits() -> dict[str, int]:
+    mujoco, _ = _mujoco_state_api()
+    return {part: int(getattr(mujoco.mjtState, f"mjSTATE_{part.upper()}")) for part in PHYSICS_PARTS}
+
+
+def _physics_spec() -> int:
+    return sum(_physics_bits().values())
+
+
+def physics_layout(model) -> list[tuple[str, int]]:
+    """(part, size) of a dataset's physics vector for a raw ``MjModel``: the parts of
+    :data:`PHYSICS_PARTS` that the model has (size > 0), in order."""
+    mujoco, _ = _mujoco_state_api()
+    sizes = [(part, int(mujoco.mj_stateSize(model, bit))) for part, bit in _physics_bits().items()]
+    return [(part, size) for part, size in sizes if size]
+
+
+def physics_vector(model, data) -> np.ndarray:
+    """The physics vector (float64) of :func:`physics_layout` of raw ``MjModel`` / ``MjData``."""
+    mujoco, _ = _mujoco_state_api()
+    spec = _physics_spec()
+    state = np.empty(mujoco.mj_stateSize(model, spec), dtype=np.float64)
+    mujoco.mj_getState(model, data, state, spec)
+    return state
+
+
+def physics_setter(model, data, recompute: str):
+    """``set(values)``: writes a physics vector of :func:`physics_vector` into ``data``, then
+    recomputes the derived quantities as :func:`set_mujoco_state` does (``"step1"``: what a
+    dm_control step leaves behind, positions and velocities of the new state; ``"forward"``: what
+    Meta-World reads after each step). The other state parts of ``data`` are left as they are."""
+    mujoco, _ = _mujoco_state_api()
+    spec = _physics_spec()
+    derive = {"step1": mujoco.mj_step1, "forward": mujoco.mj_forward}[recompute]
+
+    def set_state(values: np.ndarray) -> None:
+        mujoco.mj_setState(model, data, values, spec)
+        derive(model, data)
+
+    return set_state
 
 
 def set_mujoco_state(model, data, values: list[float], recompute: str) -> None:

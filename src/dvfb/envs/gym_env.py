@@ -11,6 +11,9 @@ What :class:`DMCGymEnv` does, per docs/tasks.md §3 (innermost first):
   is a time-limit truncation, so ``terminated`` is always False and ``truncated`` is True there.
 * §3 "Reward-free pre-training still computes a reward": the task reward is always computed and
   returned in ``info["task_reward"]``; with ``reward_free=True`` the returned reward is 0.0.
+* Datasets (docs/methods.md, "Datasets"): :meth:`DMCGymEnv.physics_state` is the physics vector
+  recorded with each observation, and :meth:`DMCGymEnv.rewards_from_physics` the task's reward of
+  recorded states, computed as :meth:`DMCGymEnv.step` computes it.
 """
 
 from __future__ import annotations
@@ -23,7 +26,8 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
-from dvfb.envs._common import mujoco_state, random_state_to_list, set_mujoco_state, set_random_state
+from dvfb.envs._common import (mujoco_state, physics_layout, physics_setter, physics_vector, random_state_to_list,
+                               set_mujoco_state, set_random_state)
 from dvfb.envs.registry import TaskSpec
 
 _FLOAT64 = np.float64
@@ -169,6 +173,42 @@ class DMCGymEnv(gym.Env):
         self.dmc_env._reset_next_step = bool(state["needs_reset"])
         self._needs_reset = bool(state["needs_reset"])
         self.set_rng_state(state["rng"])
+
+    # ----------------------------------------------------------------------------------------
+    # Datasets: physics states and the rewards of recorded states
+
+    @property
+    def physics_layout(self) -> list[tuple[str, int]]:
+        """(part, size) of :meth:`physics_state`: qpos, qvel, act, ctrl, ... (dvfb.envs._common.PHYSICS_PARTS)."""
+        return physics_layout(self.physics.model.ptr)
+
+    @property
+    def physics_width(self) -> int:
+        return sum(size for _, size in self.physics_layout)
+
+    def physics_state(self) -> np.ndarray:
+        """The physics vector (float64, :attr:`physics_width`) of the current state: after a
+        :meth:`step`, the state its reward was computed from; after :meth:`reset`, the initial one."""
+        return physics_vector(self.physics.model.ptr, self.physics.data.ptr)
+
+    def rewards_from_physics(self, states: np.ndarray) -> np.ndarray:
+        """This task's reward (float64, one per row) of each physics vector of ``states`` (N,
+        :attr:`physics_width`), exactly as :meth:`step` returns it for a step that arrives there:
+        the state is written into MuJoCo, ``mj_step1`` recomputes what a dm_control step leaves
+        behind (positions, velocities, sensors), and the task's ``get_reward`` reads it. Overwrites
+        the episode in progress: reset before stepping again."""
+        states = np.ascontiguousarray(states, dtype=np.float64)
+        if states.ndim != 2 or states.shape[1] != self.physics_width:
+            raise ValueError(f"{self.task_spec.name}: physics states of shape {states.shape}, expected "
+                             f"(N, {self.physics_width})")
+        set_state = physics_setter(self.physics.model.ptr, self.physics.data.ptr, recompute="step1")
+        task, physics = self.dmc_env.task, self.physics
+        rewards = np.empty(len(states), dtype=np.float64)
+        for i, state in enumerate(states):
+            set_state(state)
+            rewards[i] = task.get_reward(physics)
+        self._needs_reset = True
+        return rewards
 
     def render(self):
         """An RGB frame (H, W, 3) from camera 0 when ``render_mode == "rgb_array"``, else None."""

@@ -17,6 +17,13 @@ What :class:`MetaWorldGymEnv` does (docs/tasks.md §4.6):
 * The reward is Meta-World's default "v2" reward in [0, 10]; ``info["task_reward"]`` always holds it
   and ``info["success"]`` the task's success flag (handle within 7 cm of the target) at this step.
   The protocol reads success at the final step of an episode (docs/tasks.md §4.6).
+* Datasets (docs/methods.md, "Datasets"): the faucet reward reads, after each step's forward
+  pass, the handle's and the gripper's site positions (from MuJoCo's positions) and the episode's
+  task constants (the faucet position drawn for the task, Meta-World's ``rand_vec``, from which its
+  reset derives the target, the initial handle and gripper positions); not the action, nor the
+  previous observation frame. So :meth:`MetaWorldGymEnv.physics_state` is MuJoCo's physics vector
+  followed by the task's ``rand_vec``, and :meth:`MetaWorldGymEnv.rewards_from_physics` recomputes
+  the reward exactly, for either faucet task.
 """
 
 from __future__ import annotations
@@ -30,7 +37,8 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
-from dvfb.envs._common import mujoco_state, random_state_to_list, set_mujoco_state, set_random_state
+from dvfb.envs._common import (mujoco_state, physics_layout, physics_setter, physics_vector, random_state_to_list,
+                               set_mujoco_state, set_random_state)
 from dvfb.envs.registry import TaskSpec
 from dvfb.errors import ConfigError
 
@@ -169,6 +177,57 @@ class MetaWorldGymEnv(gym.Env):
         task_reward = float(reward)
         return (obs.astype(_FLOAT32), 0.0 if self.reward_free else task_reward, False, truncated,
                 {"task_reward": task_reward, "success": bool(info["success"])})
+
+    # ----------------------------------------------------------------------------------------
+    # Datasets: physics states and the rewards of recorded states (module docstring)
+
+    @property
+    def physics_layout(self) -> list[tuple[str, int]]:
+        """(part, size) of :meth:`physics_state`: MuJoCo's parts (qpos, qvel, ctrl, mocap_pos,
+        mocap_quat; dvfb.envs._common.PHYSICS_PARTS), then the task's ``rand_vec``."""
+        return physics_layout(self.mw_env.model) + [("rand_vec", int(self.mw_env._random_reset_space.shape[0]))]
+
+    @property
+    def physics_width(self) -> int:
+        return sum(size for _, size in self.physics_layout)
+
+    def physics_state(self) -> np.ndarray:
+        """The physics vector (float64, :attr:`physics_width`) of the current state: after a
+        :meth:`step`, the state its reward was computed from; after :meth:`reset`, the initial one."""
+        return np.concatenate([physics_vector(self.mw_env.model, self.mw_env.data),
+                               np.asarray(self.mw_env._last_rand_vec, dtype=np.float64)])
+
+    def rewards_from_physics(self, states: np.ndarray) -> np.ndarray:
+        """This task's reward (float64, one per row) of the physics vectors of one episode (N,
+        :attr:`physics_width`; one task ``rand_vec``), exactly as :meth:`step` returns it for a step
+        that arrives there: Meta-World's reset for that ``rand_vec`` sets the episode's constants,
+        then per row MuJoCo's state is written, its forward pass run, and the observation (clipped
+        as Meta-World's step clips it) scored by the env's own ``evaluate_state``. Overwrites the
+        episode in progress: reset before stepping again."""
+        states = np.ascontiguousarray(states, dtype=np.float64)
+        if states.ndim != 2 or states.shape[1] != self.physics_width:
+            raise ValueError(f"{self.task_spec.name}: physics states of shape {states.shape}, expected "
+                             f"(N, {self.physics_width})")
+        mw = self.mw_env
+        width = int(mw._random_reset_space.shape[0])
+        rand_vec = states[0, -width:]
+        if not (states[:, -width:] == rand_vec).all():
+            raise ValueError(f"{self.task_spec.name}: the physics states come from several episodes (their task "
+                             "rand_vec differs); give one episode at a time")
+        if not getattr(mw, "_set_task_called", False):
+            mw.set_task(self.tasks[0])
+        mw._last_rand_vec, mw._freeze_rand_vec = rand_vec.copy(), True
+        mw.reset()
+        set_state = physics_setter(mw.model, mw.data, recompute="forward")
+        space = mw.sawyer_observation_space
+        action = np.zeros(self._action_shape)  # the faucet rewards do not read it
+        rewards = np.empty(len(states), dtype=np.float64)
+        for i, state in enumerate(states):
+            set_state(state[:-width])
+            obs = np.clip(mw._get_obs(), a_max=space.high, a_min=space.low, dtype=np.float64)
+            rewards[i] = float(mw.evaluate_state(obs, action)[0])
+        self._needs_reset = True
+        return rewards
 
     def render(self):
         """An RGB frame (H, W, 3) from the authors' camera when ``render_mode == "rgb_array"``."""

@@ -133,7 +133,7 @@ def list_snapshots(run: RunDir | str | os.PathLike) -> list[str]:
                   if not p.name.startswith("."))
 
 
-def _load_state(path: Path, map_location: Any, weights_only: bool) -> dict:
+def _load_state(path: Path, map_location: Any, weights_only: bool, mmap: bool = False) -> dict:
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     # torch.save writes a zip archive: anything else (random bytes, a truncated head) is corrupt,
@@ -141,7 +141,7 @@ def _load_state(path: Path, map_location: Any, weights_only: bool) -> dict:
     if not zipfile.is_zipfile(path):
         raise CheckpointError(f"checkpoint {path} is truncated or corrupt: it is not a torch checkpoint archive")
     try:
-        state = torch.load(path, map_location=map_location, weights_only=weights_only)
+        state = torch.load(path, map_location=map_location, weights_only=weights_only, mmap=mmap)
     except pickle.UnpicklingError as exc:
         if weights_only and "weights only" in str(exc).lower():
             raise CheckpointError(
@@ -161,10 +161,12 @@ def _load_state(path: Path, map_location: Any, weights_only: bool) -> dict:
 
 
 def load_checkpoint(run: RunDir | str | os.PathLike, name: str | None = None,
-                    map_location: Any = "cpu", weights_only: bool = True) -> dict:
+                    map_location: Any = "cpu", weights_only: bool = True, mmap: bool = False) -> dict:
     """Load ``checkpoints/<name>.pt``, or with ``name=None`` the one ``latest`` points at.
 
     A missing pointer or file, or a truncated or corrupt file, raises CheckpointError naming it.
+    ``mmap`` maps the tensors' storage from the file instead of reading it (torch.load's ``mmap``):
+    what a reader of one part of a large checkpoint at a time (a dataset export) wants.
     """
     checkpoints_dir = _as_run_dir(run).checkpoints_dir
     if name is None:
@@ -174,7 +176,7 @@ def load_checkpoint(run: RunDir | str | os.PathLike, name: str | None = None,
                 f"no checkpoint to resume from: {checkpoints_dir / LATEST_POINTER} does not exist")
     else:
         file_name = _file_name(name, "checkpoint")
-    return _load_state(checkpoints_dir / file_name, map_location, weights_only)
+    return _load_state(checkpoints_dir / file_name, map_location, weights_only, mmap)
 
 
 def load_snapshot(run: RunDir | str | os.PathLike, name: str, map_location: Any = "cpu",

@@ -56,15 +56,19 @@ class OnlineCollector:
     ``uniform(step)`` says whether a step acts uniformly at random (from ``rng``); ``reward_key``
     names the ``info`` field whose reward is stored (pre-training stores the task reward for
     logging, the reward-free update never reads it), None the environment's reward.
-    ``first_reset_seed`` seeds the first reset of a fresh run.
+    ``first_reset_seed`` seeds the first reset of a fresh run. ``physics`` (the env's
+    ``physics_state``), when given, is stored with every observation in the replay's ``physics``
+    column (datasets: docs/methods.md, "Datasets").
     """
 
     def __init__(self, env, replay, agent, rng: np.random.Generator, next_skill: SkillRule,
                  uniform: Callable[[int], bool], *, reward_key: str | None = None,
-                 first_reset_seed: int | None = None, state: EpisodeState | None = None):
+                 first_reset_seed: int | None = None, state: EpisodeState | None = None,
+                 physics: Callable[[], np.ndarray] | None = None):
         self.env, self.replay, self.agent, self.rng = env, replay, agent, rng
         self.next_skill, self.uniform, self.reward_key = next_skill, uniform, reward_key
         self.first_reset_seed = first_reset_seed
+        self.physics = physics
         self.state = state if state is not None else EpisodeState()
         self.action_dim = env.action_space.shape[0]
         self.action: np.ndarray | None = None
@@ -78,7 +82,10 @@ class OnlineCollector:
                 self.first_reset_seed = None
             else:
                 s.obs, _ = self.env.reset()
-            self.replay.start_episode(s.obs)
+            if self.physics is None:
+                self.replay.start_episode(s.obs)
+            else:
+                self.replay.start_episode(s.obs, physics=self.physics())
             s.episode_return, s.episode_start = 0.0, False
         s.set_skill(self.next_skill(step, starting, s.skill))
         if self.uniform(step):
@@ -92,7 +99,11 @@ class OnlineCollector:
         s.obs, reward, terminated, truncated, info = self.env.step(self.action)
         if self.reward_key is not None:
             reward = info[self.reward_key]
-        self.replay.add(self.action, reward, 0.0 if terminated else 1.0, s.obs, s.skill_host)
+        discount = 0.0 if terminated else 1.0
+        if self.physics is None:
+            self.replay.add(self.action, reward, discount, s.obs, s.skill_host)
+        else:
+            self.replay.add(self.action, reward, discount, s.obs, s.skill_host, physics=self.physics())
         s.episode_return += reward
         if terminated or truncated:
             s.episode += 1

@@ -174,6 +174,11 @@ class ResumeCheckpoints:
         if step - (self.last or 0) >= self.every or step >= self.total:
             self._write(step, mid_episode=False)
 
+    def ensure(self, step: int, mid_episode: bool) -> None:
+        """A checkpoint of ``step`` unless the newest is of it (a run that must end with one)."""
+        if self.last != step:
+            self._write(step, mid_episode)
+
     def after_step(self, step: int, mid_episode: bool) -> None:
         if self.stop.received is None or step >= self.total:
             return

@@ -61,7 +61,8 @@ class PretrainConfig:
     update_every: int = param(2, "One gradient update every this many steps.", at_least=1)
     replay_capacity: int = param(1_000_000, "Replay capacity in transitions.", at_least=1)
     replay: ReplaySamplingConfig = field(default_factory=ReplaySamplingConfig,
-                                         metadata={"help": "How the updates' batches are drawn from the replay."})
+                                         metadata={"help": "How the updates' batches are drawn from the replay, "
+                                                           "and what it records."})
     snapshot_frames: list[int] = param([100_000, 500_000, 1_000_000, 2_000_000],
                                        "Frames at which agent snapshots are kept (the final frame always is).",
                                        at_least=1)

@@ -22,6 +22,11 @@ where the uninterrupted run would have, with the same RNG streams, replay conten
 states and counters. On SIGTERM/SIGINT a checkpoint is written after the current step, mid-episode
 if need be: it then also holds the environment's full MuJoCo state, the current observation and
 skill, and the resumed run continues that episode exactly as the uninterrupted one does.
+
+With ``--replay.record-physics`` the replay also stores the environment's physics state with every
+observation (docs/methods.md, "Datasets"), and the run ends with a resume checkpoint of its last
+step (mid-episode if need be) when the last one is older, so that its final checkpoint holds every
+episode it finished: what ``dvfb dataset export`` reads.
 """
 
 from __future__ import annotations
@@ -37,7 +42,7 @@ from dvfb import envs
 from dvfb.agents import get_spec, make_agent
 from dvfb.config import to_dict
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
-from dvfb.replay import ReplayBuffer
+from dvfb.replay import ReplayBuffer, physics_columns
 from dvfb.runs import (
     MetricsLogger,
     RunDir,
@@ -112,21 +117,22 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
     agent = make_agent(config.agent, obs_dim, action_dim, config, device)
     episode_length = envs.TASKS[trained_task or envs.pretrain_task(config.domain)].episode_length
     check_replay(config.replay_capacity, "--replay-capacity", agent.replay_needs(), episode_length, config.domain)
+    columns = physics_columns(env.unwrapped.physics_width) if config.replay.record_physics else None
     check_memory({"replay": ReplayBuffer.estimate_nbytes(config.replay_capacity, obs_dim, action_dim, agent.skill_dim,
-                                                         episode_length),
+                                                         episode_length, columns),
                   "networks": learner_state_bytes(agent)}, f"pretrain {config.agent} {config.domain}", device)
     lock = RunLock(run_path)
     with lock:
         try:
             return _pretrain_locked(config, run_path, resume, overwrite, progress, command, device, rng, env, agent,
-                                    episode_length)
+                                    episode_length, columns)
         except BaseException:
             lock.remove_if_created()
             raise
 
 
 def _pretrain_locked(config, run_path, resume, overwrite, progress, command, device, rng, env, agent,
-                     episode_length) -> RunDir:
+                     episode_length, columns) -> RunDir:
     obs_dim, action_dim = agent.obs_dim, agent.action_dim
     state = None
     if resume:
@@ -151,7 +157,8 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
     else:
         run = RunDir.create(run_path, config, overwrite=overwrite, command=command)
     replay = ReplayBuffer(config.replay_capacity, obs_dim, action_dim, agent.skill_dim,
-                          max_episode_length=episode_length, device=device, sampler=config.replay.sampler())
+                          max_episode_length=episode_length, device=device, sampler=config.replay.sampler(),
+                          columns=columns)
     needs = agent.replay_needs()
 
     step = 0
@@ -194,7 +201,7 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
 
     collector = OnlineCollector(env, replay, agent, rng, next_skill, lambda t: t < config.seed_frames,
                                 reward_key="task_reward", first_reset_seed=None if state is not None else config.seed,
-                                state=episode)
+                                state=episode, physics=env.unwrapped.physics_state if columns else None)
 
     def save_resume(mid_episode: bool = False) -> None:
         checkpoint = {
@@ -231,6 +238,8 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
             step = loop.run(step, config.frames, collector, lambda: agent.update(needs.sample(replay, generator)),
                             config.seed_frames, config.update_every, window, checkpoints, bar, after_step,
                             after_episode)
+            if columns:  # a dataset's run: the final checkpoint holds every finished episode
+                checkpoints.ensure(step, mid_episode=not episode.episode_start)
     finally:
         bar.close()
         logger.close()

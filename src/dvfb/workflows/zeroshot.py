@@ -81,7 +81,7 @@ def infer_from_reward_fn(agent: Agent, run: RunDir, config: PretrainConfig, rewa
         state = None
     if state is not None:
         buffer = ReplayBuffer(config.replay_capacity, agent.obs_dim, agent.action_dim, agent.skill_dim,
-                              episode_length, device=agent.device)
+                              episode_length, device=agent.device, columns=state["replay"].get("columns"))
         buffer.load_state_dict(state["replay"])
         source = "the run's pre-training replay"
     else:
