@@ -22,7 +22,7 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
     for task in tasks:
         result = zeroshot(args.run, task, snapshot=args.snapshot, inference=inference, seed=args.seed,
                           skill_source=args.skill_source, reward_fn=args.reward_fn, goal=goal,
-                          overwrite=args.overwrite, progress=args.progress)
+                          overwrite=args.overwrite, progress=args.progress, dataset=args.dataset)
         rows.append((task, result["mean_return"], result["std_return"], result["eval_episodes"],
                      result.get("success_rate")))
     with_success = any(row[4] is not None for row in rows)
@@ -43,10 +43,13 @@ def register(sub, agent: str) -> None:
     p.add_argument("--task", nargs="+", required=True, help="task name(s) of the run's domain, or 'all'")
     add_snapshot_and_seed(p, "task seed")
     p.add_argument("--skill-source", "--z-source", dest="skill_source", default="rewards",
-                   choices=("rewards", "reward_fn", "goal"),
+                   choices=("rewards", "reward_fn", "dataset", "goal"),
                    help="where the task's skill comes from: interaction with the task (every method), a reward "
-                        "function over the run's replay states, or a goal (methods that infer skills); "
-                        "--z-source is the old name (default: %(default)s)")
+                        "function over the run's replay states, a dataset relabelled for the task from its physics "
+                        "states, or a goal (methods that infer skills); --z-source is the old name "
+                        "(default: %(default)s)")
+    p.add_argument("--dataset", default=None, help="--skill-source dataset: the dataset directory (default: the one "
+                                                   "an offline run trained on)")
     p.add_argument("--reward-fn", default=None, help="module:function or file.py:function mapping next_obs (N, O) to rewards")
     p.add_argument("--goal", default=None, help="goal observation: a .npy file or comma-separated numbers")
     p.add_argument("--overwrite", action="store_true", help="replace an existing result file")

@@ -25,8 +25,9 @@ from dvfb.config import param, require_updates
 from dvfb.errors import ConfigError
 
 # Where the skill of a task can come from: interaction with the task (every protocol), samples of
-# states with rewards computed by a function, or a goal state (protocols that infer skills).
-SKILL_SOURCES = ("rewards", "reward_fn", "goal")
+# states with rewards computed by a function or relabelled from a dataset's physics, or a goal
+# state (protocols that infer skills).
+SKILL_SOURCES = ("rewards", "reward_fn", "dataset", "goal")
 
 
 class ZeroShotProtocol:

@@ -125,7 +125,7 @@ class RewardInference(ZeroShotProtocol):
 
     name = "reward_inference"
     config_cls = InferenceConfig
-    sources = ("rewards", "reward_fn", "goal")
+    sources = ("rewards", "reward_fn", "dataset", "goal")
     skill_schedule = False  # a new prior skill at every collection step (§8.1)
 
     def task_steps(self, source: str = "rewards") -> int:
@@ -175,7 +175,7 @@ class FeatureRegression(RewardInference):
 
     name = "feature_regression"
     config_cls = RegressionConfig
-    sources = ("rewards", "reward_fn")
+    sources = ("rewards", "reward_fn", "dataset")
     skill_schedule = True
 
 

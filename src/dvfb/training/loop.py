@@ -15,7 +15,7 @@ Per step ``t``, whatever the method:
    the resume checkpoints at episode ends and on signals (:class:`~dvfb.training.monitor.ResumeCheckpoints`).
 
 The loop knows no method: it asks its source for transitions, the learner for updates and its hooks
-for the rest. A fixed dataset is another source (it steps nothing and only feeds the replay).
+for the rest. A fixed dataset is another source (:class:`DatasetSource`: it steps nothing; the replay holds the data).
 """
 
 from __future__ import annotations
@@ -112,7 +112,23 @@ class OnlineCollector:
         return False
 
 
-def run(step: int, total: int, source: OnlineCollector, update: Callable[[], dict], learn_from: int,
+class DatasetSource:
+    """The offline data source: the replay already holds a fixed dataset. A step acts in no
+    environment and adds nothing; every step is a boundary at which a checkpoint may be written
+    (there is no episode in progress), so checkpoints come every ``checkpoint_every`` steps."""
+
+    def __init__(self):
+        self.state = EpisodeState()
+        self.action: np.ndarray | None = None
+
+    def prepare(self, step: int) -> None:
+        pass
+
+    def advance(self) -> bool:
+        return True
+
+
+def run(step: int, total: int, source: OnlineCollector | DatasetSource, update: Callable[[], dict], learn_from: int,
         update_every: int, window: MetricWindow, checkpoints: ResumeCheckpoints, progress: Progress,
         after_step: Callable[[int], None], after_episode: Callable[[int, EpisodeState], None] | None = None) -> int:
     """Run the loop of the module docstring from ``step`` to ``total``; returns the last step.

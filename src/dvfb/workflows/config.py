@@ -60,6 +60,9 @@ class PretrainConfig:
     seed_frames: int = param(4000, "Uniform-action steps before the first update.", at_least=0)
     update_every: int = param(2, "One gradient update every this many steps.", at_least=1)
     replay_capacity: int = param(1_000_000, "Replay capacity in transitions.", at_least=1)
+    dataset: str = param("", "Offline: train on the dataset in this directory (dvfb dataset export / relabel) "
+                         "instead of acting: no environment steps, one update per step (--frames counts updates; "
+                         "--seed-frames and --update-every do not apply). Empty: online.")
     replay: ReplaySamplingConfig = field(default_factory=ReplaySamplingConfig,
                                          metadata={"help": "How the updates' batches are drawn from the replay, "
                                                            "and what it records."})
@@ -74,6 +77,14 @@ class PretrainConfig:
 
     def check(self) -> None:
         """Relations between fields (ranges are checked per field)."""
+        if self.dataset:
+            if self.replay.record_physics:
+                raise ConfigError("--replay.record-physics records what an online run collects; an offline run "
+                                  "(--dataset) collects nothing")
+            if self.replay.sampling != "uniform":
+                raise ConfigError(f"--replay.sampling {self.replay.sampling} emulates the online driver's loader; "
+                                  "offline batches are drawn uniformly from the dataset (--replay.sampling uniform)")
+            return
         require_updates("--frames", self.frames, "--seed-frames", self.seed_frames)
 
 

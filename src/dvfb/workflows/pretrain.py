@@ -40,7 +40,8 @@ import torch
 
 from dvfb import envs
 from dvfb.agents import get_spec, make_agent
-from dvfb.config import to_dict
+from dvfb.config import replace, to_dict
+from dvfb.datasets import read_dataset, read_info
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.replay import ReplayBuffer, physics_columns
 from dvfb.runs import (
@@ -55,7 +56,7 @@ from dvfb.runs import (
     write_json_atomic,
 )
 from dvfb.training import loop
-from dvfb.training.loop import EpisodeState, OnlineCollector
+from dvfb.training.loop import DatasetSource, EpisodeState, OnlineCollector
 from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, notify
 from dvfb.training.seeding import check_resume_format, restore_rng_state, rng_state, run_generator, seed_everything
 from dvfb.workflows.resources import check_memory, check_replay, check_task_in_domain, learner_state_bytes, setup_torch
@@ -109,6 +110,17 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
     trained_task = get_spec(config.agent).task_of(config)
     if trained_task is not None:
         check_task_in_domain(trained_task, config.domain)
+    dataset_info = None
+    if config.dataset:
+        if trained_task is not None:
+            raise ConfigError(f"{config.agent} learns from its task's reward online; offline training (--dataset) "
+                              "is for the reward-free methods")
+        dataset_info = read_info(config.dataset)
+        if dataset_info.domain != config.domain:
+            raise ConfigError(f"--dataset {config.dataset} holds {dataset_info.domain} data; this run is on "
+                              f"{config.domain} (pass --domain {dataset_info.domain})")
+        # Offline, every step of the loop is one update (docs/methods.md, "Offline training").
+        config = replace(config, seed_frames=0, update_every=1)
     device = setup_torch(config)
     rng = seed_everything(config.seed)
     env = envs.make(trained_task or config.domain, seed=config.seed, reward_free=True)
@@ -118,21 +130,29 @@ def pretrain(config: PretrainConfig, run_path: str | Path, *, resume: bool = Fal
     episode_length = envs.TASKS[trained_task or envs.pretrain_task(config.domain)].episode_length
     check_replay(config.replay_capacity, "--replay-capacity", agent.replay_needs(), episode_length, config.domain)
     columns = physics_columns(env.unwrapped.physics_width) if config.replay.record_physics else None
-    check_memory({"replay": ReplayBuffer.estimate_nbytes(config.replay_capacity, obs_dim, action_dim, agent.skill_dim,
+    capacity = config.replay_capacity if dataset_info is None else dataset_info.transitions
+    check_memory({"replay": ReplayBuffer.estimate_nbytes(capacity, obs_dim, action_dim, agent.skill_dim,
                                                          episode_length, columns),
                   "networks": learner_state_bytes(agent)}, f"pretrain {config.agent} {config.domain}", device)
+    dataset = None
+    if dataset_info is not None:
+        if (dataset_info.obs_dim, dataset_info.action_dim) != (obs_dim, action_dim):
+            raise ConfigError(f"--dataset {config.dataset} has observations of {dataset_info.obs_dim} and actions of "
+                              f"{dataset_info.action_dim} values; {config.domain} has {obs_dim} and {action_dim}")
+        # Read whole before the run directory exists: a bad file creates nothing.
+        dataset, _ = read_dataset(config.dataset, device, agent.skill_dim, progress=progress)
     lock = RunLock(run_path)
     with lock:
         try:
             return _pretrain_locked(config, run_path, resume, overwrite, progress, command, device, rng, env, agent,
-                                    episode_length, columns)
+                                    episode_length, columns, dataset, dataset_info)
         except BaseException:
             lock.remove_if_created()
             raise
 
 
 def _pretrain_locked(config, run_path, resume, overwrite, progress, command, device, rng, env, agent,
-                     episode_length, columns) -> RunDir:
+                     episode_length, columns, dataset=None, dataset_info=None) -> RunDir:
     obs_dim, action_dim = agent.obs_dim, agent.action_dim
     state = None
     if resume:
@@ -156,9 +176,13 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
                               "pass a larger --frames to extend the run")
     else:
         run = RunDir.create(run_path, config, overwrite=overwrite, command=command)
-    replay = ReplayBuffer(config.replay_capacity, obs_dim, action_dim, agent.skill_dim,
-                          max_episode_length=episode_length, device=device, sampler=config.replay.sampler(),
-                          columns=columns)
+    offline = dataset is not None
+    # What an offline checkpoint records instead of the replay: which data it trained on.
+    fingerprint = None if not offline else {"path": str(Path(config.dataset).resolve()), "episodes": dataset_info.episodes,
+                                            "transitions": dataset_info.transitions, "files": list(dataset_info.files)}
+    replay = dataset if offline else ReplayBuffer(
+        config.replay_capacity, obs_dim, action_dim, agent.skill_dim, max_episode_length=episode_length, device=device,
+        sampler=config.replay.sampler(), columns=columns)
     needs = agent.replay_needs()
 
     step = 0
@@ -170,7 +194,11 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
         try:
             agent.load_training_state(state["agent_state"])
             generator.set_state(state["generator"])
-            replay.load_state_dict(state["replay"])
+            if offline:
+                if state.get("dataset", {}).get("files") != fingerprint["files"]:
+                    raise ValueError(f"the run trained on other data than --dataset {config.dataset} now holds")
+            else:
+                replay.load_state_dict(state["replay"])
             restore_rng_state(state["rng"], rng)
             env.unwrapped.set_rng_state(state["env_rng"])
             episode_state = state.get("episode_state")
@@ -199,15 +227,17 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
         # The method's declared rule (docs/methods.md, "Skills"); its prior draws the new skill.
         return agent.sample_skill(1)[0] if agent.skill.due(t, episode_start) else current
 
-    collector = OnlineCollector(env, replay, agent, rng, next_skill, lambda t: t < config.seed_frames,
-                                reward_key="task_reward", first_reset_seed=None if state is not None else config.seed,
-                                state=episode, physics=env.unwrapped.physics_state if columns else None)
+    collector = DatasetSource() if offline else OnlineCollector(
+        env, replay, agent, rng, next_skill, lambda t: t < config.seed_frames, reward_key="task_reward",
+        first_reset_seed=None if state is not None else config.seed, state=episode,
+        physics=env.unwrapped.physics_state if columns else None)
 
     def save_resume(mid_episode: bool = False) -> None:
         checkpoint = {
             "kind": RESUME_KIND, "format": RESUME_FORMAT, "agent": config.agent, "config": to_dict(config),
             "step": step, "generator": generator.get_state(),
-            "episode": episode.episode, "agent_state": agent.training_state(), "replay": replay.state_dict(),
+            "episode": episode.episode, "agent_state": agent.training_state(),
+            **({"dataset": fingerprint} if offline else {"replay": replay.state_dict()}),
             "rng": rng_state(rng), "env_rng": env.unwrapped.get_rng_state()}
         if mid_episode:
             checkpoint["episode_state"] = {
@@ -237,7 +267,7 @@ def _pretrain_locked(config, run_path, resume, overwrite, progress, command, dev
         with checkpoints:
             step = loop.run(step, config.frames, collector, lambda: agent.update(needs.sample(replay, generator)),
                             config.seed_frames, config.update_every, window, checkpoints, bar, after_step,
-                            after_episode)
+                            None if offline else after_episode)
             if columns:  # a dataset's run: the final checkpoint holds every finished episode
                 checkpoints.ensure(step, mid_episode=not episode.episode_start)
     finally:

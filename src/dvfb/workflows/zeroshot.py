@@ -6,6 +6,8 @@ or skill selection (skill discovery). Protocols that infer skills from data also
 
 * ``reward_fn``: a Python function ``f(next_obs: np.ndarray (N, O)) -> rewards (N,)`` applied to the
   states of the run's own pre-training replay buffer (no task interaction);
+* ``dataset``: the transitions of a dataset (``dvfb dataset export``; by default the one an offline
+  run trained on) with the task's rewards relabelled from their physics states;
 * ``goal``: a goal observation.
 
 The result (returns, the skill, the protocol's details) is written to ``RUN/zeroshot/<task>.json``.
@@ -28,7 +30,8 @@ from dvfb.config import merge, to_dict
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.protocols import SKILL_SOURCES, ZeroShotProtocol, zero_shot_protocol
 from dvfb.protocols.zero_shot import collect_inference_data, infer_task_vector
-from dvfb.replay import ReplayBuffer
+from dvfb.datasets import read_dataset, read_info
+from dvfb.replay import PHYSICS_COLUMN, ReplayBuffer
 from dvfb.runs import RunDir, check_writable, load_checkpoint, write_json_atomic
 from dvfb.training.monitor import Progress
 from dvfb.training.seeding import seed_everything
@@ -79,7 +82,10 @@ def infer_from_reward_fn(agent: Agent, run: RunDir, config: PretrainConfig, rewa
         state = load_checkpoint(run, None, map_location="cpu")
     except CheckpointError:
         state = None
-    if state is not None:
+    if config.dataset:  # an offline run: its dataset's states
+        buffer, _ = read_dataset(config.dataset, agent.device, agent.skill_dim)
+        source = f"the run's dataset {config.dataset}"
+    elif state is not None:
         buffer = ReplayBuffer(config.replay_capacity, agent.obs_dim, agent.action_dim, agent.skill_dim,
                               episode_length, device=agent.device, columns=state["replay"].get("columns"))
         buffer.load_state_dict(state["replay"])
@@ -99,6 +105,27 @@ def infer_from_reward_fn(agent: Agent, run: RunDir, config: PretrainConfig, rewa
     return skill, {**info, "states": source}
 
 
+def infer_from_dataset(agent: Agent, config: PretrainConfig, task: str, protocol: ZeroShotProtocol,
+                       dataset: str | Path | None) -> tuple[torch.Tensor, dict]:
+    """The skill from a dataset's transitions with ``task``'s rewards recomputed from their physics
+    states (docs/methods.md, "Datasets"): ``dataset``, or the one the run trained on offline."""
+    path = dataset or config.dataset
+    if not path:
+        raise ConfigError("--skill-source dataset needs --dataset DIR (a dataset of the run's domain; an offline "
+                          "run defaults to its own)")
+    info = read_info(path)
+    if info.domain != config.domain:
+        raise ConfigError(f"dataset {path} holds {info.domain} data; the run is on {config.domain}")
+    buffer, _ = read_dataset(path, agent.device, columns=(PHYSICS_COLUMN,))
+    data = buffer.transitions()
+    env = envs.make(task, seed=config.seed)
+    rewards = env.unwrapped.rewards_from_physics(data.columns["next_" + PHYSICS_COLUMN].cpu().numpy())
+    reward_t = torch.as_tensor(rewards, dtype=torch.float32, device=agent.device).reshape(-1, 1)
+    skill, info_ = protocol.skill_from_samples(agent, data.obs, data.next_obs, reward_t)
+    return skill, {**info_, "states": f"dataset {path} ({info.transitions} transitions, rewards of {task} "
+                                      "relabelled from physics)"}
+
+
 def result_path(run: RunDir, task: str, snapshot: int, final_snapshot: int) -> Path:
     name = task if snapshot == final_snapshot else f"{task}@{snapshot}"
     return run.path / "zeroshot" / f"{name}.json"
@@ -107,7 +134,7 @@ def result_path(run: RunDir, task: str, snapshot: int, final_snapshot: int) -> P
 def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, inference: dict | None = None,
              seed: int | None = None, skill_source: str = "rewards", reward_fn: str | Callable | None = None,
              goal: np.ndarray | None = None, overwrite: bool = False, device: str | None = None,
-             progress: bool | None = None) -> dict:
+             progress: bool | None = None, dataset: str | Path | None = None) -> dict:
     """Find the task's skill by the run's zero-shot protocol and evaluate ``pi(., skill)``; returns
     the result.
 
@@ -135,7 +162,8 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     bar = Progress(protocol.task_steps(skill_source) + protocol.eval_episodes * episode_length, 0, f"zeroshot {task}",
                    progress, unit="step")
     try:
-        z, info = task_skill(agent, run, config, task, protocol, rng, seed, skill_source, reward_fn, goal, progress=bar)
+        z, info = task_skill(agent, run, config, task, protocol, rng, seed, skill_source, reward_fn, goal, progress=bar,
+                             dataset=dataset)
         eval_env = envs.make(task, seed=seed)
         evaluation = evaluate_policy(agent, eval_env, z, protocol.eval_episodes, progress=bar)
     finally:
@@ -155,7 +183,7 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
 def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, protocol: ZeroShotProtocol,
                rng: np.random.Generator, seed: int, skill_source: str = "rewards", reward_fn: str | Callable | None = None,
                goal: np.ndarray | None = None, keep_data: bool = False, env=None,
-               progress=None) -> tuple[torch.Tensor | None, dict]:
+               progress=None, dataset: str | Path | None = None) -> tuple[torch.Tensor | None, dict]:
     """The skill the policy is evaluated with, by the run's zero-shot protocol.
 
     ``skill_source``: interaction with the task (``rewards``), a reward function over the run's replay
@@ -173,6 +201,8 @@ def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, pro
             raise ConfigError("skill_source 'reward_fn' needs a reward function")
         fn = load_reward_fn(reward_fn) if isinstance(reward_fn, str) else reward_fn
         return infer_from_reward_fn(agent, run, config, fn, protocol, rng)
+    if skill_source == "dataset":
+        return infer_from_dataset(agent, config, task, protocol, dataset)
     if goal is None:
         raise ConfigError("skill_source 'goal' needs a goal observation")
     return protocol.skill_from_goal(agent, goal)
