@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from dvfb.agents import get_spec, make_agent
-from dvfb.agents.conservative_fb import ConservativeConfig, ConservativeFBAgent
+from dvfb.agents.conservative_fb import ConservativeConfig, MCFBAgent, VCFBAgent
 from dvfb.errors import ConfigError
 from dvfb.replay import Batch
 from tests.tiny import ACT, OBS, filled_replay, tiny_config, tiny_run_config
@@ -16,8 +16,8 @@ N = 5
 
 
 def agent_and_batch(penalty, samples=6, seed=0, **conservative):
-    agent = ConservativeFBAgent(OBS, ACT, tiny_config(batch_size=N),
-                                ConservativeConfig(penalty=penalty, samples=samples, **conservative)).double()
+    cls = {"value": VCFBAgent, "measure": MCFBAgent}[penalty]
+    agent = cls(OBS, ACT, tiny_config(batch_size=N), ConservativeConfig(samples=samples, **conservative)).double()
     g = torch.Generator().manual_seed(seed)
     batch = Batch(obs=torch.randn(N, OBS, generator=g, dtype=torch.float64),
                   action=torch.rand(N, ACT, generator=g, dtype=torch.float64) * 2 - 1,
@@ -104,8 +104,9 @@ def test_sample_groups_must_split_evenly():
 @pytest.mark.parametrize("name,penalty", [("vcfb", "value"), ("mcfb", "measure")])
 def test_registered_variants_update_with_the_penalty(name, penalty):
     config = tiny_run_config(name)
-    assert config.conservative.penalty == penalty and get_spec(name).method_label(config) == name
+    assert get_spec(name).method_label(config) == name
     agent = make_agent(name, 4, 2, config)
+    assert agent.penalty == penalty and agent.name == name
     metrics = agent.update(agent.replay_needs().sample(filled_replay(agent)))
     assert {"conservative_penalty", "conservative_alpha", "fb_loss"} <= set(metrics)
     assert torch.isfinite(metrics["conservative_penalty"])

@@ -17,8 +17,8 @@ without density corrections, at temperature 1, with the training z of the row. `
 by dual ascent on ``log alpha`` (starting at ``alpha = 1``) so that ``P`` settles at ``target``
 (50); with ``lagrange = false`` it is the constant ``alpha``.
 
-VC-FB and MC-FB are two registered methods (``vcfb``, ``mcfb``) on this one class: FB's agent with
-its ``conservative`` section.
+VC-FB and MC-FB are two registered methods (``vcfb``, ``mcfb``), two-line subclasses of this class
+(FB's agent with its ``conservative`` section) that fix the penalty.
 """
 
 from __future__ import annotations
@@ -40,8 +40,6 @@ PENALTIES = ("value", "measure")
 class ConservativeConfig:
     """The conservative penalty of VC-FB / MC-FB (docs/methods.md, "Conservative FB")."""
 
-    penalty: str = param("value", "Which values are pushed down: Q = F.z (value, VC-FB) or M = F.B (measure, MC-FB).",
-                         PENALTIES)
     samples: int = param(12, "Actions per batch row in the log-sum-exp (authors: 12).", at_least=4)
     uniform_share: float = param(0.5, "Share of those actions drawn uniformly; the rest are split equally "
                                  "between pi(s), pi(s') and the dataset action.", at_least=0, at_most=1)
@@ -63,9 +61,10 @@ class ConservativeConfig:
 
 
 class ConservativeFBAgent(FBAgent):
-    """FB with the value- or measure-conservative penalty (see the module docstring)."""
+    """FB with the value- or measure-conservative penalty (see the module docstring); the two
+    registered methods are its subclasses, which fix ``penalty``."""
 
-    name = "conservative_fb"
+    penalty: str = ""
 
     @classmethod
     def from_config(cls, obs_dim, action_dim, config, device="cpu") -> ConservativeFBAgent:
@@ -73,8 +72,8 @@ class ConservativeFBAgent(FBAgent):
 
     def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, conservative: ConservativeConfig,
                  device: str | torch.device = "cpu", perf: PerfConfig | None = None):
-        if conservative.penalty not in PENALTIES:
-            raise ValueError(f"penalty must be one of {PENALTIES}, got {conservative.penalty!r}")
+        if self.penalty not in PENALTIES:
+            raise ValueError(f"penalty must be one of {PENALTIES}, got {self.penalty!r}")
         self.conservative = conservative
         self.num_uniform, self.num_each = conservative.counts()
         super().__init__(obs_dim, action_dim, config, device, perf)
@@ -112,7 +111,7 @@ class ConservativeFBAgent(FBAgent):
         states, actions, zs = self.penalty_actions(batch, z)
         sampled = self.net_runner(self.forward_map, states, actions, zs)  # (2, J'N, d)
         sampled = sampled.view(2, -1, n, sampled.shape[-1])  # (2, J', N, d)
-        if self.conservative.penalty == "value":
+        if self.penalty == "value":
             dataset_values = skill_values(forward, z)  # (2, N)
             sampled_values = (sampled * z).sum(-1)  # (2, J', N)
         else:
@@ -150,7 +149,21 @@ class ConservativeFBAgent(FBAgent):
         metrics.update(conservative_alpha=alpha, fb_conservative_total=total.detach())
 
 
-# Registration (beside the agent): two methods, one class.
+class VCFBAgent(ConservativeFBAgent):
+    """VC-FB: the penalty on ``Q = F.z``."""
+
+    name = "vcfb"
+    penalty = "value"
+
+
+class MCFBAgent(ConservativeFBAgent):
+    """MC-FB: the penalty on every ``M = F.B(s')`` of the batch."""
+
+    name = "mcfb"
+    penalty = "measure"
+
+
+# Registration (beside the agents).
 from dvfb.agents.registry import AgentSpec, register  # noqa: E402
 
 
@@ -158,11 +171,10 @@ def conservative_label(name: str):
     return lambda run, finetune: fb_finetune_label(name, finetune)
 
 
-for _name, _penalty, _paper in (("vcfb", "value", "VC-FB"), ("mcfb", "measure", "MC-FB")):
+for _cls, _paper in ((VCFBAgent, "VC-FB"), (MCFBAgent, "MC-FB")):
     register(AgentSpec(
-        name=_name, agent_cls=ConservativeFBAgent, family="forward-backward",
-        summary=f"{_paper}: FB with the {_penalty}-conservative penalty and a tuned weight, for offline data "
+        name=_cls.name, agent_cls=_cls, family="forward-backward",
+        summary=f"{_paper}: FB with the {_cls.penalty}-conservative penalty and a tuned weight, for offline data "
                 "(Jeen et al.)",
         sections={"fb": FBConfig, "conservative": ConservativeConfig}, zero_shot="reward_inference",
-        finetuner="dual_value", defaults={"conservative": {"penalty": _penalty}},
-        presets={"small": {"fb": FB_SMALL}}, label=conservative_label(_name), column=3))
+        finetuner="dual_value", presets={"small": {"fb": FB_SMALL}}, label=conservative_label(_cls.name), column=3))
