@@ -64,7 +64,7 @@ def test_lra_p_loss_by_hand():
     phi = next_phi.detach()
     diag = sum(float(mu[i] @ phi[i]) for i in range(N)) / N
     off = sum(float(mu[i] @ phi[j]) ** 2 for i in range(N) for j in range(N) if i != j) / (N * (N - 1))
-    assert float(loss) == pytest.approx(-2 * diag + off + ortho_by_hand(phi), rel=1e-10)
+    assert float(loss.detach()) == pytest.approx(-2 * diag + off + ortho_by_hand(phi), rel=1e-10)
 
 
 def test_lra_sr_loss_by_hand_and_its_targets_move_inside_the_loss():
@@ -89,7 +89,7 @@ def test_lra_sr_loss_by_hand_and_its_targets_move_inside_the_loss():
     diag = sum(float(phi[i] @ mu_next[i]) for i in range(N)) / N
     td = sum((float(phi[i] @ mu_next[j]) - 0.99 * float(phi_bar[i] @ mu_bar[j])) ** 2
              for i in range(N) for j in range(N) if i != j) / (N * (N - 1))
-    assert float(loss) == pytest.approx(-2 * diag + td + ortho_by_hand(phi), rel=1e-10)
+    assert float(loss.detach()) == pytest.approx(-2 * diag + td + ortho_by_hand(phi), rel=1e-10)
 
 
 def test_contrastive_loss_by_hand():
@@ -102,7 +102,7 @@ def test_contrastive_loss_by_hand():
     for i in range(N):
         sims = [float(q[i] @ k[j]) / (float(q[i].norm()) * float(k[j].norm())) for j in range(N)]
         total += -sims[i] + math.log(sum(math.exp(s) for j, s in enumerate(sims) if j != i))
-    assert float(loss) == pytest.approx(total / N, rel=1e-10)
+    assert float(loss.detach()) == pytest.approx(total / N, rel=1e-10)
 
 
 def test_every_feature_learner_is_registered_with_its_paper_name():
@@ -132,7 +132,7 @@ def test_td_loss_by_hand_uses_the_smaller_target_head_and_the_projections():
             picked = t[0 if v[0] <= v[1] else 1, i]
             y = next_phi[i].detach() + 0.99 * picked
             total += (float(psi[k, i] @ z[i]) - float(y @ z[i])) ** 2 / N
-    assert float(losses["sf_loss"]) == pytest.approx(total, rel=1e-10)
+    assert float(losses["sf_loss"].detach()) == pytest.approx(total, rel=1e-10)
 
 
 def test_the_td_loss_does_not_train_the_features_and_the_feature_loss_not_psi():
