@@ -47,7 +47,7 @@ import torch
 from dvfb import __version__, envs
 from dvfb.errors import ConfigError, DvfbError
 from dvfb.replay import PHYSICS_COLUMN, Column, ReplayBuffer, physics_columns
-from dvfb.runs import RunDir, load_checkpoint, read_json, write_json_atomic
+from dvfb.runs import PRETRAIN_RESUME_KIND, RunDir, load_checkpoint, read_json, write_json_atomic
 from dvfb.training.monitor import Progress
 
 DATASET_FORMAT = 1
@@ -242,7 +242,6 @@ def export_run(run: str | Path, out: str | Path | None = None, progress: bool | 
     removes what was written.
     """
     from dvfb.agents import get_spec
-    from dvfb.workflows.pretrain import RESUME_KIND
 
     run = RunDir.open(run)
     config = read_json(run.config_path)
@@ -253,7 +252,7 @@ def export_run(run: str | Path, out: str | Path | None = None, progress: bool | 
         raise ConfigError(no_physics)
     check_output_dir(out)
     state = load_checkpoint(run, None, mmap=True)
-    if state.get("kind") != RESUME_KIND:
+    if state.get("kind") != PRETRAIN_RESUME_KIND:
         raise ConfigError(f"{run.path}: the latest checkpoint is not a pre-training checkpoint")
     replay = state["replay"]
     physics = _physics_slice(replay.get("columns") or {})

@@ -18,6 +18,9 @@ from dvfb.runs.files import _atomic_write, _remove_stale_temp_files
 
 LATEST_POINTER = "latest"
 CHECKPOINT_SUFFIX = ".pt"
+# The ``kind`` of a pre-training run's resume checkpoints: what pre-training writes and what the
+# readers of a run's replay (zero-shot's reward functions, dataset export) look for.
+PRETRAIN_RESUME_KIND = "pretrain_resume"
 
 
 def remove_orphaned_checkpoints(run: RunDir | str | os.PathLike) -> list[Path]:

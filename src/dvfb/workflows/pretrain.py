@@ -45,6 +45,7 @@ from dvfb.datasets import read_dataset, read_info
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.replay import ReplayBuffer, physics_columns
 from dvfb.runs import (
+    PRETRAIN_RESUME_KIND,
     MetricsLogger,
     RunDir,
     RunLock,
@@ -65,7 +66,7 @@ from dvfb.workflows.config import PretrainConfig, load_run_config
 
 log = logging.getLogger(__name__)
 
-RESUME_KIND = "pretrain_resume"
+RESUME_KIND = PRETRAIN_RESUME_KIND
 # Format of resume checkpoints. 1: before runs owned their random streams; 2: adds the state of the
 # run's torch generator (every skill draw, policy noise and batch). Format 1 cannot resume exactly.
 RESUME_FORMAT = 2
