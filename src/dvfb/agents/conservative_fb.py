@@ -137,16 +137,12 @@ class ConservativeFBAgent(FBAgent):
     def _fb_penalties(self, batch, z, forward, backward) -> dict[str, torch.Tensor]:
         return {"conservative_penalty": self.conservative_penalty(batch, z, forward, backward)}
 
-    def _fb_step(self, batch, z, next_action, backward, target_input, metrics) -> None:
-        losses = self.fb_losses(batch, z, next_action, backward, target_input)
+    def _fb_objective(self, losses, metrics) -> torch.Tensor:
         penalty = losses["conservative_penalty"]
-        alpha = self.alpha_step(penalty)
+        alpha = self.alpha_step(penalty)  # stepped first; the FB step uses the new alpha
         total = losses["fb_total"] + alpha * penalty
-        self.fb_optimizer.zero_grad(set_to_none=True)
-        total.backward()
-        self.fb_optimizer.step()
-        metrics.update({k: v.detach() for k, v in losses.items()})
         metrics.update(conservative_alpha=alpha, fb_conservative_total=total.detach())
+        return total
 
 
 class VCFBAgent(ConservativeFBAgent):

@@ -318,10 +318,16 @@ class FBAgent(Agent):
 
     def _fb_step(self, batch, z, next_action, backward, target_input, metrics) -> None:
         losses = self.fb_losses(batch, z, next_action, backward, target_input)
+        objective = self._fb_objective(losses, metrics)
         self.fb_optimizer.zero_grad(set_to_none=True)
-        losses["fb_total"].backward()
+        objective.backward()
         self.fb_optimizer.step()
         metrics.update({k: v.detach() for k, v in losses.items()})
+
+    def _fb_objective(self, losses: dict[str, torch.Tensor], metrics: dict) -> torch.Tensor:
+        """What the FB step minimises, from :meth:`fb_losses` (conservative FB: plus its weighted
+        penalty). FB: ``fb_total``."""
+        return losses["fb_total"]
 
     def actor_loss(self, obs: torch.Tensor, z: torch.Tensor, metrics: dict) -> torch.Tensor:
         """``-mean(Q_M + bonus)`` with ``Q_M = min_k F_k(s, a~, z) . z`` (§7.11)."""

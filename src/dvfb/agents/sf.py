@@ -208,9 +208,6 @@ class SFAgent(FBAgent):
     def goal_widths(self) -> tuple[int, ...]:
         return (self.obs_dim,)
 
-    def nonfinite_hint(self, metric_names: list[str]) -> str:
-        return ""
-
     # Checkpointing -------------------------------------------------------------------------------
     def pretrained_modules(self) -> dict[str, nn.Module]:
         return {"actor": self.actor, "successor_map": self.successor_map, "successor_target": self.successor_target,

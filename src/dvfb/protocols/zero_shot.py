@@ -41,9 +41,14 @@ class InferenceConfig:
     eval_episodes: int = param(50, "Mean-action evaluation episodes with the inferred z_r.", at_least=1)
 
     def check(self) -> None:
-        if self.random_action_steps > self.steps:
-            raise ConfigError(f"--inference.random-action-steps {self.random_action_steps} must be at most "
-                              f"--inference.steps {self.steps}")
+        check_uniform_steps(self)
+
+
+def check_uniform_steps(config) -> None:
+    """The uniform-action steps of a collection are part of its steps."""
+    if config.random_action_steps > config.steps:
+        raise ConfigError(f"--inference.random-action-steps {config.random_action_steps} must be at most "
+                          f"--inference.steps {config.steps}")
 
 
 @dataclass
@@ -162,9 +167,7 @@ class RegressionConfig:
     eval_episodes: int = param(50, "Mean-action evaluation episodes with the inferred z_r.", at_least=1)
 
     def check(self) -> None:
-        if self.random_action_steps > self.steps:
-            raise ConfigError(f"--inference.random-action-steps {self.random_action_steps} must be at most "
-                              f"--inference.steps {self.steps}")
+        check_uniform_steps(self)
 
 
 @register_zero_shot
