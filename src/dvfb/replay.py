@@ -120,7 +120,7 @@ class Batch:
     columns: dict[str, torch.Tensor] = dataclasses.field(default_factory=dict)
 
     def __len__(self) -> int:
-        return self.obs.shape[0]
+        return self.obs.shape[-2]  # rows; a group's batch (docs/members.md) is (M, B, ...)
 
     def chunk(self, n: int) -> list[Batch]:
         """``n`` equal batches of the rows (the last may be shorter): a batch of ``n * B`` uniform
@@ -128,11 +128,23 @@ class Batch:
         size = -(-len(self) // n)
 
         def part(x: torch.Tensor | None, i: int) -> torch.Tensor | None:
-            return None if x is None else x[i * size:(i + 1) * size]
+            return None if x is None else x[..., i * size:(i + 1) * size, :]
 
         tensors = [f.name for f in dataclasses.fields(self) if f.name != "columns"]
         return [Batch(*(part(getattr(self, name), i) for name in tensors),
                       columns={k: part(v, i) for k, v in self.columns.items()}) for i in range(n)]
+
+    @staticmethod
+    def stack(batches: list[Batch]) -> Batch:
+        """A group's batch (docs/members.md): member k's rows are ``batches[k]``, on a leading axis."""
+        first = batches[0]
+
+        def stacked(name: str) -> torch.Tensor | None:
+            return None if getattr(first, name) is None else torch.stack([getattr(b, name) for b in batches])
+
+        tensors = [f.name for f in dataclasses.fields(Batch) if f.name != "columns"]
+        return Batch(*(stacked(name) for name in tensors),
+                     columns={k: torch.stack([b.columns[k] for b in batches]) for k in first.columns})
 
     def to(self, device: str | torch.device) -> Batch:
         """The same batch with every tensor moved to ``device``."""

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 
 from dvfb.nets import project_to_sphere
+from dvfb.nets.members import rand, randint, randn
 
 SKILL_KINDS = ("none", "one_hot", "sphere", "box", "method")
 
@@ -62,20 +63,21 @@ class SkillSpec:
                generator: torch.Generator | None = None) -> torch.Tensor | None:
         """``n`` draws of the prior, ``(n, dim)`` float32; None for ``kind="none"``.
 
-        ``method`` skills have no generic prior: the agent draws them.
+        ``method`` skills have no generic prior: the agent draws them. A group's
+        :class:`~dvfb.nets.members.MemberGenerators` give ``(M, n, dim)``, member k's from its stream.
         """
         if self.kind == "none":
             return None
         if self.kind == "one_hot":
-            index = torch.randint(0, self.dim, (n,), device=device, generator=generator)
+            index = randint(0, self.dim, (n,), generator, device)
             return torch.nn.functional.one_hot(index, self.dim).to(torch.float32)
         if self.kind == "sphere":
-            draw = project_to_sphere(torch.randn(n, self.dim, device=device, generator=generator))
+            draw = project_to_sphere(randn((n, self.dim), generator, device))
             if self.radius is not None:
                 draw = draw * (self.radius / math.sqrt(self.dim))
             return draw
         if self.kind == "box":
-            u = torch.rand(n, self.dim, device=device, generator=generator)
+            u = rand((n, self.dim), generator, device)
             return self.low + (self.high - self.low) * u
         raise ValueError("a 'method' skill is drawn by its agent (Agent.sample_skill)")
 

@@ -10,6 +10,7 @@ from torch import nn
 from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGCore, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.nets import TwinCritic, call_network
+from dvfb.nets.members import with_head_axis
 from dvfb.rewards.aps import APSConfig, APSReward
 from dvfb.skills import SkillSpec
 
@@ -25,7 +26,7 @@ class APSCore(DDPGCore):
     def critic_values(self, critic: nn.Module, obs: torch.Tensor, skill: torch.Tensor, action: torch.Tensor,
                       run=call_network) -> torch.Tensor:
         psi = run(critic, obs, skill, action)  # (K, N, d)
-        return (psi * skill).sum(dim=-1, keepdim=True)  # (K, N, 1)
+        return (psi * with_head_axis(skill, self.members)).sum(dim=-1, keepdim=True)  # (K, N, 1)
 
 
 class APSAgent(IntrinsicDDPGAgent):

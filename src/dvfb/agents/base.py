@@ -62,6 +62,8 @@ class Agent(nn.Module):
     skill: SkillSpec = NO_SKILL
     # The run's random stream (Agent.use_generator); None: torch's global one.
     generator: torch.Generator | None = None
+    # 0: an ordinary agent; N: a group of N members on stacked tensors (dvfb.nets.members, docs/members.md).
+    members: int = 0
     obs_dim: int
     action_dim: int
     device: torch.device
@@ -130,6 +132,34 @@ class Agent(nn.Module):
         return action
 
     @torch.inference_mode()
+    def act_members(self, obs: np.ndarray, skill: torch.Tensor | None, explore: bool) -> np.ndarray:
+        """A group's actions (docs/members.md): member k's for its observation ``obs[k]`` and skill
+        ``skill[k]``, ``(M, action_dim)``, from one batched actor forward; member k's exploration
+        noise comes from its own stream, as its separate run's :meth:`act` draws it."""
+        if self.device.type == "cpu":
+            return self._act_members_host(obs, skill, explore)
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(1)
+        skill_t = skill.unsqueeze(1) if skill is not None else obs_t.new_zeros(obs_t.shape[0], 1, 0)
+        mean = self.actor(obs_t, skill_t)
+        action = rollout_action(mean, self.policy_stddev, self.generator) if explore else mean
+        return action[:, 0].cpu().numpy()
+
+    def _act_members_host(self, obs: np.ndarray, skill: torch.Tensor | None, explore: bool) -> np.ndarray:
+        # On the CPU each member acts as its separate run does (HostActor on its slice of the
+        # stacked actor, noise from its stream): at batch 1 numpy beats any batched torch call.
+        hosts = getattr(self, "_member_hosts", None)
+        if hosts is None or len(hosts) != self.members or hosts[0].actor is not self.actor:
+            hosts = self._member_hosts = [HostActor(self.actor, k) for k in range(self.members)]
+        skills = skill.detach().numpy() if skill is not None else np.zeros((len(hosts), 0), dtype=np.float32)
+        actions = np.stack([host(o, z) for host, o, z in zip(hosts, obs, skills)])
+        if explore:
+            for action, generator in zip(actions, self.generator):
+                action += torch.randn(1, self.action_dim, generator=generator).numpy()[0] * np.float32(self.policy_stddev)
+                np.minimum(action, np.float32(1 - ACTION_EPS), out=action)
+                np.maximum(action, np.float32(-1 + ACTION_EPS), out=action)
+        return actions
+
+    @torch.inference_mode()
     def _act_torch(self, obs: np.ndarray, skill: torch.Tensor | None, explore: bool) -> np.ndarray:
         obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
         skill_t = skill.reshape(1, -1) if skill is not None else obs_t.new_zeros(1, 0)
@@ -190,5 +220,6 @@ class Agent(nn.Module):
 
 
 def no_skill_like(obs: torch.Tensor) -> torch.Tensor:
-    """An empty ``(N, 0)`` skill, so that skill-less methods share the skill-conditioned networks."""
-    return obs.new_zeros(obs.shape[0], 0)
+    """An empty ``(N, 0)`` skill (a group's: ``(M, N, 0)``), so that skill-less methods share the
+    skill-conditioned networks."""
+    return obs.new_zeros(*obs.shape[:-1], 0)

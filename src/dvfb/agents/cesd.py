@@ -32,6 +32,7 @@ from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGCore, IntrinsicDDPGAgen
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.config import param
 from dvfb.nets import TwinHead, call_network, layernorm_tanh_layer, orthogonal_init_, training_action
+from dvfb.nets.members import member_mean, with_head_axis
 from dvfb.replay import Batch
 from dvfb.rewards.cesd import CeSDReward
 from dvfb.rewards.contrastive import CICConfig
@@ -76,7 +77,7 @@ class EnsembleCritic(nn.Module):
 
     def forward(self, obs: torch.Tensor, skill: torch.Tensor | None, action: torch.Tensor) -> torch.Tensor:
         q = self.heads(self.trunk(torch.cat([obs, action], dim=-1)))  # (2K, N, 1)
-        return q.view(2, self.ensemble_size, *q.shape[1:])
+        return q.view(*q.shape[:-3], 2, self.ensemble_size, *q.shape[-2:])  # a group: (M, 2, K, N, 1)
 
 
 class CeSDCore(DDPGCore):
@@ -106,20 +107,21 @@ class CeSDCore(DDPGCore):
         with torch.no_grad():
             next_action = training_action(run(self.actor, batch.next_obs, skill), c.stddev, c.stddev_clip,
                                           self.generator)
-            next_v = self.critic_values(self.critic_target, batch.next_obs, skill, next_action, run).amin(0)
-            target = reward + batch.discount * next_v  # (K, N, 1)
+            next_v = self.critic_values(self.critic_target, batch.next_obs, skill, next_action, run).amin(-4)
+            m = self.members
+            target = with_head_axis(reward, m) + with_head_axis(batch.discount, m) * next_v  # (K, N, 1)
         q = self.critic_values(self.critic, batch.obs, skill, batch.action, run)  # (2, K, N, 1)
         if mask is not None:
-            m = mask.unsqueeze(-1).to(q.dtype)
-            q, target = q * m, target * m
-        return (q - target).pow(2).mean(dim=(1, 2, 3)).sum()
+            keep = mask.unsqueeze(-1).to(q.dtype)
+            q, target = q * with_head_axis(keep, m), target * keep
+        return (q - with_head_axis(target, m)).pow(2).mean(dim=(-3, -2, -1)).sum(-1)
 
     def actor_loss(self, obs: torch.Tensor, skill: torch.Tensor, run=call_network) -> torch.Tensor:
         """``-mean_{k, i} z_ik min(Q1_k, Q2_k)(s_i, a_i)``, ``a_i`` a clipped-noise sample of pi."""
         c = self.config
         action = training_action(run(self.actor, obs, skill), c.stddev, c.stddev_clip, self.generator)
-        q = self.critic_values(self.critic, obs, skill, action, run).amin(0).squeeze(-1)  # (K, N)
-        return -(skill.T * q).mean()
+        q = self.critic_values(self.critic, obs, skill, action, run).amin(-4).squeeze(-1)  # (K, N)
+        return -member_mean(skill.mT * q, self.members)
 
     def update(self, batch: Batch, reward: torch.Tensor, metrics: dict, run=call_network,
                mask: torch.Tensor | None = None) -> None:
@@ -155,7 +157,7 @@ class CeSDAgent(IntrinsicDDPGAgent):
         reward, cluster, next_rep, info = self.intrinsic.score_and_assign(batch, run)
         metrics.update(info)
         heads = torch.arange(self.skill.dim, device=cluster.device)
-        mask = heads.unsqueeze(1) == cluster.unsqueeze(0)  # (K, N): state i regresses head k = its cluster
+        mask = heads.unsqueeze(-1) == cluster.unsqueeze(-2)  # (K, N): state i regresses head k = its cluster
         self.core.train_step(batch, reward, metrics, run, mask=mask)
         # g is unchanged since the reward (the critic and actor steps do not touch it): reuse g(s_{t+n}).
         metrics.update(self.intrinsic.update_prototypes(batch, run, next_rep))

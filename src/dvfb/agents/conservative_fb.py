@@ -32,8 +32,14 @@ from dvfb.config import param
 from dvfb.errors import ConfigError
 from dvfb.execution import PerfConfig
 from dvfb.nets import adam, skill_values, training_action
+from dvfb.nets.members import minimise, rand, row_products, with_head_axis
 
 PENALTIES = ("value", "measure")
+
+
+def repeat_rows(x: torch.Tensor, times: int) -> torch.Tensor:
+    """``times`` copies of the rows of ``x`` along the batch axis (-2), as ``x.repeat(times, 1)``."""
+    return x.repeat(*([1] * (x.dim() - 2)), times, 1)
 
 
 @dataclass
@@ -94,44 +100,47 @@ class ConservativeFBAgent(FBAgent):
         """The sampled (non-dataset) actions, their states and z's, ``(J' N, .)`` each, group by group:
         uniform at s, pi(s, z) at s, pi(s', z) at s' (training noise)."""
         c = self.config
-        n = batch.obs.shape[0]
-        uniform = torch.rand(self.num_uniform * n, self.action_dim, device=self.device, generator=self.generator) * 2 - 1
-        z_each = z.repeat(self.num_each, 1)
-        obs_each, next_each = batch.obs.repeat(self.num_each, 1), batch.next_obs.repeat(self.num_each, 1)
+        n = batch.obs.shape[-2]
+        uniform = rand((self.num_uniform * n, self.action_dim), self.generator, self.device) * 2 - 1
+        z_each = repeat_rows(z, self.num_each)
+        obs_each, next_each = repeat_rows(batch.obs, self.num_each), repeat_rows(batch.next_obs, self.num_each)
         policy = training_action(self.actor(obs_each, z_each), c.stddev, c.stddev_clip, self.generator)
         next_policy = training_action(self.actor(next_each, z_each), c.stddev, c.stddev_clip, self.generator)
-        states = torch.cat([batch.obs.repeat(self.num_uniform, 1), obs_each, next_each])
-        return states, torch.cat([uniform, policy, next_policy]), z.repeat(self.num_uniform + 2 * self.num_each, 1)
+        states = torch.cat([repeat_rows(batch.obs, self.num_uniform), obs_each, next_each], dim=-2)
+        actions = torch.cat([uniform, policy, next_policy], dim=-2)
+        return states, actions, repeat_rows(z, self.num_uniform + 2 * self.num_each)
 
     def conservative_penalty(self, batch, z: torch.Tensor, forward: torch.Tensor,
                              backward: torch.Tensor) -> torch.Tensor:
         """``P`` of the module docstring; ``forward`` is F at the dataset actions, ``(2, N, d)``,
         ``backward`` the online B of the batch's s', ``(N, d)``."""
-        n = batch.obs.shape[0]
+        m = self.members
+        n = batch.obs.shape[-2]
         states, actions, zs = self.penalty_actions(batch, z)
         sampled = self.net_runner(self.forward_map, states, actions, zs)  # (2, J'N, d)
-        sampled = sampled.view(2, -1, n, sampled.shape[-1])  # (2, J', N, d)
+        sampled = sampled.view(*sampled.shape[:-2], -1, n, sampled.shape[-1])  # (2, J', N, d)
+        # A group's (M, N, d) tensors get the head and J' axes of sampled's (M, 2, J', N, d).
         if self.penalty == "value":
             dataset_values = skill_values(forward, z)  # (2, N)
-            sampled_values = (sampled * z).sum(-1)  # (2, J', N)
+            sampled_values = (sampled * with_head_axis(with_head_axis(z, m), m)).sum(-1)  # (2, J', N)
         else:
-            dataset_values = torch.matmul(forward, backward.T)  # (2, N, N)
-            sampled_values = torch.matmul(sampled, backward.T)  # (2, J', N, N)
+            dataset_values = row_products(forward, backward, m)  # (2, N, N)
+            sampled_values = row_products(sampled, backward, m)  # (2, J', N, N)
         # The dataset action is one of the groups inside the log-sum-exp (its num_each copies).
-        copies = dataset_values.unsqueeze(1).expand(-1, self.num_each, *dataset_values.shape[1:])
-        logsumexp = torch.cat([sampled_values, copies], dim=1).logsumexp(dim=1)  # (2, N) or (2, N, N)
-        return (logsumexp.flatten(1).mean(-1) - dataset_values.flatten(1).mean(-1)).sum()
+        j = 2 if m else 1  # the J' axis
+        shape = dataset_values.shape
+        copies = dataset_values.unsqueeze(j).expand(*shape[:j], self.num_each, *shape[j:])
+        logsumexp = torch.cat([sampled_values, copies], dim=j).logsumexp(dim=j)  # (2, N) or (2, N, N)
+        return (logsumexp.flatten(j).mean(-1) - dataset_values.flatten(j).mean(-1)).sum(-1)
 
     def alpha_step(self, penalty: torch.Tensor) -> torch.Tensor:
         """One dual-ascent step on log alpha (alpha grows while P > target); the new alpha, detached."""
         c = self.conservative
         if not c.lagrange:
-            return torch.tensor(c.alpha, device=self.device)
-        alpha = self.log_alpha.exp().clamp(0, c.alpha_max)
+            return torch.full(self.log_alpha.shape, c.alpha, device=self.device)  # a group: (M,)
+        alpha = self.log_alpha.exp().clamp(0, c.alpha_max)  # a group: (M,), each member's own
         alpha_loss = -0.5 * alpha * (penalty.detach() - c.target)
-        self.alpha_optimizer.zero_grad(set_to_none=True)
-        alpha_loss.backward()
-        self.alpha_optimizer.step()
+        minimise(self.alpha_optimizer, alpha_loss)
         return self.log_alpha.detach().exp().clamp(0, c.alpha_max)
 
     def _fb_penalties(self, batch, z, forward, backward) -> dict[str, torch.Tensor]:

@@ -22,6 +22,7 @@ from dvfb.agents.base import Agent, ReplayNeeds, no_skill_like
 from dvfb.execution import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.config import param
 from dvfb.nets import Actor, TwinCritic, adam, call_network, make_target, soft_update_, training_action, twin_td_loss
+from dvfb.nets.members import member_mean, minimise
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward
 from dvfb.skills import NO_SKILL, SkillSpec
@@ -50,6 +51,7 @@ class DDPGCore(nn.Module):
     """Actor, twin critic and target critic, and one DDPG update given the reward of a batch."""
 
     generator: torch.Generator | None = None  # the run's stream for the policy noise (None: global)
+    members: int = 0  # a group's member count (docs/members.md)
 
     def __init__(self, obs_dim: int, skill_dim: int, action_dim: int, config: DDPGConfig):
         super().__init__()
@@ -84,14 +86,14 @@ class DDPGCore(nn.Module):
         with torch.no_grad():
             next_action = training_action(run(self.actor, batch.next_obs, skill), c.stddev, c.stddev_clip,
                                           self.generator)
-            next_q = self.critic_values(self.critic_target, batch.next_obs, skill, next_action, run).amin(0)  # (N, 1)
+            next_q = self.critic_values(self.critic_target, batch.next_obs, skill, next_action, run).amin(-3)  # (N, 1)
             target = reward + batch.discount * next_q
         return twin_td_loss(self.critic_values(self.critic, batch.obs, skill, batch.action, run), target)
 
     def actor_loss(self, obs: torch.Tensor, skill: torch.Tensor, run=call_network) -> torch.Tensor:
         c = self.config
         action = training_action(run(self.actor, obs, skill), c.stddev, c.stddev_clip, self.generator)
-        return -self.critic_values(self.critic, obs, skill, action, run).amin(0).mean()
+        return -member_mean(self.critic_values(self.critic, obs, skill, action, run).amin(-3), self.members)
 
     def update(self, batch: Batch, reward: torch.Tensor, metrics: dict, run=call_network) -> None:
         """Critic step, actor step, target EMA (URLB's order). ``reward`` is ``(N, 1)``."""
@@ -106,17 +108,14 @@ class DDPGCore(nn.Module):
         """Critic step, then actor step; ``critic_options`` go to :meth:`critic_loss` (CeSD's mask)."""
         skill = batch.z if batch.z is not None else no_skill_like(batch.obs)
         critic_loss = self.critic_loss(batch, skill, reward, run, **critic_options)
-        self.critic_optimizer.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        self.critic_optimizer.step()
+        minimise(self.critic_optimizer, critic_loss)
         # The critic is differentiated only with respect to the action: its parameters stay out
         # of the actor's graph, and only the actor's leaves receive gradients.
         with requires_grad_disabled(list(self.critic.parameters())):
             actor_loss = self.actor_loss(batch.obs, skill, run)
-        self.actor_optimizer.zero_grad(set_to_none=True)
-        actor_loss.backward(inputs=list(self.actor.parameters()))
-        self.actor_optimizer.step()
-        metrics.update(critic_loss=critic_loss.detach(), actor_loss=actor_loss.detach(), reward=reward.mean())
+        minimise(self.actor_optimizer, actor_loss, inputs=list(self.actor.parameters()))
+        metrics.update(critic_loss=critic_loss.detach(), actor_loss=actor_loss.detach(),
+                       reward=member_mean(reward, self.members))
 
 
 class IntrinsicDDPGAgent(Agent):

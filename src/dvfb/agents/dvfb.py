@@ -20,6 +20,7 @@ from dvfb.execution import PerfConfig
 from dvfb.agents.registry import AgentSpec, config_field, register
 from dvfb.config import param
 from dvfb.nets import TwinCritic, adam, make_target, twin_td_loss
+from dvfb.nets.members import member_mean, minimise, per_member
 from dvfb.replay import Batch
 from dvfb.rewards.contrastive import CE_AGGREGATES, CE_NEIGHBOURS, CICConfig, CICReward, ContrastiveEntropyReward
 from dvfb.rewards.icm import ICMAPTConfig, ICMAPTReward
@@ -158,9 +159,9 @@ class DVFBAgent(FBAgent):
                 if e.beta != 0:
                     with torch.no_grad():  # the just-updated encoders (§7.2 step 6)
                         ce = self.contrastive.score(labelled, run)
-                    metrics["ce_reward"] = ce.mean()
+                    metrics["ce_reward"] = member_mean(ce, self.members)
                     reward = reward + e.beta * ce
-        metrics["intrinsic_reward"] = reward.mean()
+        metrics["intrinsic_reward"] = member_mean(reward, self.members)
         return reward
 
     def exploration_critic_loss(self, batch: Batch, z: torch.Tensor, next_action: torch.Tensor,
@@ -168,7 +169,7 @@ class DVFBAgent(FBAgent):
         """Twin TD loss of Q_P on the intrinsic reward (§7.7)."""
         run = self.net_runner
         with torch.no_grad():
-            next_q = run(self.exploration_critic_target, batch.next_obs, z, next_action).amin(0)  # (N, 1)
+            next_q = run(self.exploration_critic_target, batch.next_obs, z, next_action).amin(-3)  # (N, 1)
             target = reward + batch.discount * next_q
         q = run(self.exploration_critic, batch.obs, z, batch.action)  # (2, N, 1)
         return twin_td_loss(q, target)
@@ -176,19 +177,19 @@ class DVFBAgent(FBAgent):
     def _explore(self, batch, z, next_action, labels, metrics) -> None:
         reward = self.intrinsic_reward(batch, labels, metrics)
         loss = self.exploration_critic_loss(batch, z, next_action, reward)
-        self.critic_optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.critic_optimizer.step()
+        minimise(self.critic_optimizer, loss)
         metrics["exploration_critic_loss"] = loss.detach()
 
     def _actor_bonus(self, obs, z, action, skill_value, metrics):
         e = self.exploration
-        exploration_value = self.net_runner(self.exploration_critic, obs, z, action).amin(0).squeeze(-1)
-        if e.alpha_mode == "adaptive":
-            alpha = (2 * skill_value.mean() / exploration_value.mean()).detach()
+        exploration_value = self.net_runner(self.exploration_critic, obs, z, action).amin(-3).squeeze(-1)
+        m = self.members
+        if e.alpha_mode == "adaptive":  # one alpha per member, from its own means
+            alpha = per_member((2 * member_mean(skill_value, m) / member_mean(exploration_value, m)).detach(),
+                               exploration_value)
         else:
             alpha = e.alpha
-        metrics["exploration_value"] = exploration_value.detach().mean()
+        metrics["exploration_value"] = member_mean(exploration_value.detach(), m)
         return alpha * exploration_value
 
 

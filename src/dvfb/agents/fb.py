@@ -41,6 +41,7 @@ from dvfb.nets import (
     skill_values,
     training_action,
 )
+from dvfb.nets.members import member_mean, minimise, rand, row_products, with_head_axis, randperm, take_rows
 from dvfb.replay import Batch
 from dvfb.skills import SkillSpec
 
@@ -82,19 +83,23 @@ class FBConfig:
 def implicit_reward(backward: torch.Tensor, z: torch.Tensor, ridge: float = 0.0) -> torch.Tensor:
     """``r_i = B_i Cov^{-1} z_i`` with ``Cov = B^T B / N`` (§7.9, §9.4), by a linear solve.
 
-    ``z`` is ``(N, d)`` (one z per row) or ``(d,)`` (one z for all rows). Returns ``(N,)``.
+    ``z`` is ``(N, d)`` (one z per row) or ``(d,)`` (one z for all rows). Returns ``(N,)``. A group's
+    ``backward`` is ``(M, N, d)``, with ``z`` ``(M, N, d)`` or ``(M, d)``, and the result ``(M, N)``.
     """
-    n, d = backward.shape
-    cov = backward.T @ backward / n
+    n, d = backward.shape[-2:]
+    cov = backward.mT @ backward / n
     if ridge:
         cov = cov + ridge * torch.eye(d, device=backward.device, dtype=backward.dtype)
-    rhs = z.T if z.dim() == 2 else z.unsqueeze(-1)
+    per_row = z.dim() == backward.dim()
+    rhs = z.mT if per_row else z.unsqueeze(-1)
     # solve_ex: no host sync on failure. An exactly singular Cov(B) gives non-finite rewards, which
     # stop the run with an error naming the step and --fb.cov-ridge when the metrics are read (D19).
     solution, _info = torch.linalg.solve_ex(cov, rhs)
-    if z.dim() == 2:
-        return (backward * solution.T).sum(-1)
-    return backward @ solution.squeeze(-1)
+    if per_row:
+        return (backward * solution.mT).sum(-1)
+    if backward.dim() == 2:
+        return backward @ solution.squeeze(-1)
+    return (backward @ solution).squeeze(-1)
 
 
 def infer_z_from_rewards(features: torch.Tensor, rewards: torch.Tensor,
@@ -233,19 +238,19 @@ class FBAgent(Agent):
     def training_z(self, batch: Batch) -> torch.Tensor:
         """Prior z's with a ``mix_ratio`` share replaced by projected B of replay data (§5.3)."""
         c = self.config
-        n = batch.obs.shape[0]
+        n = batch.obs.shape[-2]
         z = sample_z_prior(n, c.z_dim, self.device, self.generator)
         if c.mix_ratio <= 0:
             return z
-        perm = torch.randperm(n, device=self.device, generator=self.generator)
+        perm = randperm(n, self.generator, self.device)
         if c.backward_input == "state":
-            goal_input = batch.obs[perm]
+            goal_input = take_rows(batch.obs, perm)
         elif c.backward_input == "transition":
-            goal_input = torch.cat([batch.obs[perm], batch.next_obs[perm]], dim=-1)
+            goal_input = torch.cat([take_rows(batch.obs, perm), take_rows(batch.next_obs, perm)], dim=-1)
         else:  # code_exact (D1 b): pairs of unrelated states
-            goal_input = torch.cat([batch.obs, batch.obs[perm]], dim=-1)
+            goal_input = torch.cat([batch.obs, take_rows(batch.obs, perm)], dim=-1)
         goals = project_to_sphere(self.net_runner(self.backward_map, goal_input))
-        replace = torch.rand(n, 1, device=self.device, generator=self.generator) < c.mix_ratio
+        replace = rand((n, 1), self.generator, self.device) < c.mix_ratio
         return torch.where(replace, goals, z)
 
     # The update ---------------------------------------------------------------------------------
@@ -284,27 +289,29 @@ class FBAgent(Agent):
         with torch.no_grad():
             target_forward = run(self.forward_target, batch.next_obs, next_action, z)  # (2, N, d)
             target_backward = run(self.backward_target, target_input)  # (N, d)
-            target_m = torch.matmul(target_forward, target_backward.T).amin(0)  # (N, N)
+            # A group's tensors carry a leading member axis: the head axis is always -3 here.
+            heads = self.members
+            target_m = row_products(target_forward, target_backward, heads).amin(-3)  # (N, N)
         forward = run(self.forward_map, batch.obs, batch.action, z)  # (2, N, d)
-        m = torch.matmul(forward, backward.T)  # (2, N, N)
-        offdiag = offdiag_mean((m - discount * target_m).pow(2))  # (2,)
+        m = row_products(forward, backward, heads)  # (2, N, N)
+        offdiag = offdiag_mean((m - with_head_axis(discount * target_m, heads)).pow(2))  # (2,)
         diag = m.diagonal(dim1=-2, dim2=-1).mean(-1)  # (2,)
-        fb_loss = (0.5 * offdiag - diag).sum()
+        fb_loss = (0.5 * offdiag - diag).sum(-1)
 
         ortho_loss = orthonormality_loss(backward)
-        losses = {"fb_loss": fb_loss, "fb_offdiag": offdiag.mean(), "fb_diag": diag.mean(),
+        losses = {"fb_loss": fb_loss, "fb_offdiag": offdiag.mean(-1), "fb_diag": diag.mean(-1),
                   "ortho_loss": ortho_loss}
         total = fb_loss + c.ortho_coef * ortho_loss
         if c.q_loss:
             with torch.no_grad():
                 reward = implicit_reward(backward.detach(), z, c.cov_ridge)
-                next_q = skill_values(target_forward, z).amin(0)
+                next_q = skill_values(target_forward, z).amin(-2)
                 target_q = reward + discount.squeeze(-1) * next_q
             q = skill_values(forward, z)  # (2, N)
-            q_loss = (q - target_q).pow(2).mean(-1).sum()
+            q_loss = (q - with_head_axis(target_q, heads)).pow(2).mean(-1).sum(-1)
             losses["fb_q_loss"] = q_loss
             # Logged so that a singular Cov(B) is named as such when the metrics are read back (D19).
-            losses["implicit_reward"] = reward.mean()
+            losses["implicit_reward"] = member_mean(reward, self.members)
             total = total + c.q_loss_coef * q_loss
         losses["fb_total"] = total
         losses.update(self._fb_penalties(batch, z, forward, backward))
@@ -318,10 +325,7 @@ class FBAgent(Agent):
 
     def _fb_step(self, batch, z, next_action, backward, target_input, metrics) -> None:
         losses = self.fb_losses(batch, z, next_action, backward, target_input)
-        objective = self._fb_objective(losses, metrics)
-        self.fb_optimizer.zero_grad(set_to_none=True)
-        objective.backward()
-        self.fb_optimizer.step()
+        minimise(self.fb_optimizer, self._fb_objective(losses, metrics))
         metrics.update({k: v.detach() for k, v in losses.items()})
 
     def _fb_objective(self, losses: dict[str, torch.Tensor], metrics: dict) -> torch.Tensor:
@@ -334,23 +338,21 @@ class FBAgent(Agent):
         c = self.config
         run = self.net_runner
         action = training_action(run(self.actor, obs, z), c.stddev, c.stddev_clip, self.generator)
-        skill_value = skill_values(run(self.forward_map, obs, action, z), z).amin(0)
+        skill_value = skill_values(run(self.forward_map, obs, action, z), z).amin(-2)
         objective = skill_value
         bonus = self._actor_bonus(obs, z, action, skill_value, metrics)
         if bonus is not None:
             objective = objective + bonus
-        metrics["skill_value"] = skill_value.detach().mean()
-        return -objective.mean()
+        metrics["skill_value"] = member_mean(skill_value.detach(), self.members)
+        return -member_mean(objective, self.members)
 
     def _actor_step(self, obs: torch.Tensor, z: torch.Tensor, metrics: dict) -> None:
         # F (and Q_P) are differentiated only with respect to the action: excluding their
         # parameters from autograd keeps their weight-only branches out of the graph.
         with requires_grad_disabled(self._actor_frozen_params):
             loss = self.actor_loss(obs, z, metrics)
-        self.actor_optimizer.zero_grad(set_to_none=True)
         # Only the actor's leaves receive gradients: F and the critics are not touched (§7.11).
-        loss.backward(inputs=list(self.actor.parameters()))
-        self.actor_optimizer.step()
+        minimise(self.actor_optimizer, loss, inputs=list(self.actor.parameters()))
         metrics["actor_loss"] = loss.detach()
 
     # Zero-shot inference ------------------------------------------------------------------------

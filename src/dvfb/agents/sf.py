@@ -29,6 +29,7 @@ from dvfb.errors import ConfigError
 from dvfb.execution import NetRunner, PerfConfig
 from dvfb.nets import Actor, ForwardMap, adam, make_target, project_to_sphere, sample_z_prior, skill_values, training_action
 from dvfb.nets.features import FEATURE_LEARNERS
+from dvfb.nets.members import minimise, rand, randperm, take_rows, with_head_axis
 from dvfb.replay import Batch
 from dvfb.skills import SkillSpec
 
@@ -137,15 +138,15 @@ class SFAgent(FBAgent):
         """Prior z's with a ``mix_ratio`` share replaced by ``sqrt(d) normalize(phi_perm Sigma^+)``,
         ``Sigma = Phi^T Phi / N`` of ``phi(s')`` of the batch in a random order."""
         c = self.config
-        n = next_features.shape[0]
+        n = next_features.shape[-2]
         z = sample_z_prior(n, c.z_dim, self.device, self.generator).to(next_features.dtype)
         if c.mix_ratio <= 0:
             return z
-        perm = torch.randperm(n, device=self.device, generator=self.generator)
-        phi = next_features[perm]
-        cov = phi.T @ phi / n
+        perm = randperm(n, self.generator, self.device)
+        phi = take_rows(next_features, perm)
+        cov = phi.mT @ phi / n
         goals = project_to_sphere(phi @ torch.linalg.pinv(cov, hermitian=True))
-        replace = torch.rand(n, 1, device=self.device, generator=self.generator) < c.mix_ratio
+        replace = rand((n, 1), self.generator, self.device) < c.mix_ratio
         return torch.where(replace, goals, z)
 
     # The update ------------------------------------------------------------------------------------
@@ -158,9 +159,7 @@ class SFAgent(FBAgent):
         next_features = run(self.features, batch.next_obs)  # with its graph, for the feature loss
         z = self.feature_skills(next_features.detach())
         losses = self.sf_losses(batch, z, next_features)
-        self.sf_optimizer.zero_grad(set_to_none=True)
-        losses["sf_total"].backward()
-        self.sf_optimizer.step()
+        minimise(self.sf_optimizer, losses["sf_total"])
         metrics.update({k: v.detach() for k, v in losses.items()})
         self._actor_step(batch.obs, z, metrics)
         self.soft_update_targets()
@@ -173,12 +172,13 @@ class SFAgent(FBAgent):
         with torch.no_grad():
             next_action = training_action(run(self.actor, batch.next_obs, z), c.stddev, c.stddev_clip, self.generator)
             target_psi = run(self.successor_target, batch.next_obs, next_action, z)  # (2, N, d)
-            # The head whose value psi_bar' . z is smaller, per sample.
-            pick = skill_values(target_psi, z).argmin(0)  # (N,)
-            next_psi = target_psi.gather(0, pick.view(1, -1, 1).expand(1, *target_psi.shape[1:]))[0]
+            # The head whose value psi_bar' . z is smaller, per sample (the head axis is -3).
+            pick = skill_values(target_psi, z).argmin(-2)  # (N,)
+            index = pick.unsqueeze(-2).unsqueeze(-1).expand(*pick.shape[:-1], 1, *target_psi.shape[-2:])
+            next_psi = target_psi.gather(-3, index).squeeze(-3)  # (N, d)
             target = ((next_features.detach() + batch.discount * next_psi) * z).sum(-1)  # (N,)
         values = skill_values(run(self.successor_map, batch.obs, batch.action, z), z)  # (2, N)
-        sf_loss = (values - target).pow(2).mean(-1).sum()
+        sf_loss = (values - with_head_axis(target, self.members)).pow(2).mean(-1).sum(-1)
         feature_loss, feature_metrics = self.feature_learner.loss(batch.obs, batch.action, batch.next_obs,
                                                                   next_features)
         return {"sf_loss": sf_loss, "feature_loss": feature_loss, "sf_total": sf_loss + feature_loss,

@@ -29,14 +29,17 @@ from torch import nn
 
 from dvfb.nets.layers import make_target, mlp, orthogonal_init_
 from dvfb.nets.maps import BackwardMap, offdiag_mean, orthonormality_loss
+from dvfb.nets.members import member_mean, row_products
 
 
 class FeatureLearner(nn.Module):
     """``phi`` and its objective. ``loss(obs, action, next_obs, next_features)`` returns the scalar
-    loss and detached metrics; ``next_features = phi(s')`` is passed in with its graph, because the
-    agent computes it once for the TD target, the training skills and (here) the loss."""
+    loss and detached metrics (a group's: ``(M,)``, one per member); ``next_features = phi(s')``
+    is passed in with its graph, because the agent computes it once for the TD target, the
+    training skills and (here) the loss."""
 
     name: ClassVar[str] = ""
+    members: int = 0  # a group's member count (dvfb.nets.members): losses and metrics are then (M,)
 
     def __init__(self, obs_dim: int, action_dim: int, z_dim: int, hidden_dim: int, tau: float, discount: float):
         super().__init__()
@@ -69,7 +72,7 @@ class LaplacianFeatures(FeatureLearner):
 
     def loss(self, obs, action, next_obs, next_features):
         features = self.phi(obs)
-        smoothness = (features - next_features).pow(2).mean()
+        smoothness = member_mean((features - next_features).pow(2), self.members)
         ortho = orthonormality_loss(features)
         return smoothness + ortho, {"feature_smoothness": smoothness.detach(), "feature_ortho": ortho.detach()}
 
@@ -85,8 +88,8 @@ class TransitionLowRankFeatures(FeatureLearner):
         self.mu = _auxiliary_mlp(obs_dim + action_dim, hidden_dim, z_dim)
 
     def loss(self, obs, action, next_obs, next_features):
-        p = self.mu(torch.cat([obs, action], dim=-1)) @ next_features.T  # (N, N)
-        diag = p.diagonal().mean()
+        p = row_products(self.mu(torch.cat([obs, action], dim=-1)), next_features, self.members)  # (N, N)
+        diag = p.diagonal(dim1=-2, dim2=-1).mean(-1)
         offdiag = offdiag_mean(p.pow(2))
         ortho = orthonormality_loss(next_features)
         return -2 * diag + offdiag + ortho, {"feature_diag": diag.detach(), "feature_offdiag": offdiag.detach(),
@@ -114,10 +117,10 @@ class SuccessorLowRankFeatures(FeatureLearner):
             torch._foreach_lerp_([*self.phi_target.parameters(), *self.mu_target.parameters()],
                                  [*self.phi.parameters(), *self.mu.parameters()], self.tau)
             next_mu_target = self.mu_target(next_obs)
-            target_sr = self.phi_target(next_obs) @ next_mu_target.T
+            target_sr = self.phi_target(next_obs) @ next_mu_target.mT
         features = self.phi(obs)
-        sr = features @ self.mu(next_obs).T  # (N, N)
-        diag = sr.diagonal().mean()
+        sr = row_products(features, self.mu(next_obs), self.members)  # (N, N)
+        diag = sr.diagonal(dim1=-2, dim2=-1).mean(-1)
         td = offdiag_mean((sr - self.discount * target_sr).pow(2))
         ortho = orthonormality_loss(features)
         return -2 * diag + td + ortho, {"feature_diag": diag.detach(), "feature_td": td.detach(),
@@ -138,9 +141,9 @@ class ContrastiveFeatures(FeatureLearner):
     def loss(self, obs, action, next_obs, next_features):
         query = nn.functional.normalize(self.phi(obs), dim=-1)
         key = nn.functional.normalize(self.mu(next_obs), dim=-1)
-        logits = query @ key.T  # (N, N)
-        positive = logits.diagonal()
-        eye = torch.eye(logits.shape[0], dtype=torch.bool, device=logits.device)
+        logits = row_products(query, key, self.members)  # (N, N)
+        positive = logits.diagonal(dim1=-2, dim2=-1)
+        eye = torch.eye(logits.shape[-1], dtype=torch.bool, device=logits.device)
         negatives = logits.masked_fill(eye, float("-inf")).logsumexp(-1)
-        loss = (negatives - positive).mean()
-        return loss, {"feature_positive": positive.detach().mean()}
+        loss = member_mean(negatives - positive, self.members)
+        return loss, {"feature_positive": member_mean(positive.detach(), self.members)}

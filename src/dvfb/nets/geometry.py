@@ -6,6 +6,8 @@ import math
 
 import torch
 
+from dvfb.nets.members import randn
+
 # Numerical floor of the norm in the sphere projection (docs/methods.md conventions).
 NORM_FLOOR = 1e-12
 
@@ -20,5 +22,5 @@ def project_to_sphere(v: torch.Tensor) -> torch.Tensor:
 def sample_z_prior(n: int, z_dim: int, device: torch.device | str = "cpu",
                    generator: torch.Generator | None = None) -> torch.Tensor:
     """``n`` draws uniform on the sphere of radius sqrt(z_dim) (§5.1, norm_z = true)."""
-    g = torch.randn(n, z_dim, device=device, generator=generator)
+    g = randn((n, z_dim), generator, device)  # a group's MemberGenerators: (M, n, z_dim)
     return project_to_sphere(g)

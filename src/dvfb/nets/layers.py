@@ -77,12 +77,13 @@ def adam(params, lr: float, fused: bool) -> torch.optim.Adam:
 
 
 def twin_td_loss(q: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Sum over the K heads of the mean squared TD error: ``q`` is ``(K, N, 1)``, ``target`` ``(N, 1)``.
+    """Sum over the K heads of the mean squared TD error: ``q`` is ``(K, N, 1)``, ``target`` ``(N, 1)``
+    (a group: ``(M, K, N, 1)`` and ``(M, N, 1)``, one loss per member, ``(M,)``).
 
     The critic loss of DVFB's exploration critic, of the fine-tuning task critic and of the DDPG
     core (docs/methods.md, "Shared blocks").
     """
-    return (q - target).pow(2).mean(dim=(1, 2)).sum()
+    return (q - target.unsqueeze(-3)).pow(2).mean(dim=(-2, -1)).sum(-1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -168,8 +169,17 @@ class TwinHead(nn.Module):
                 self.second_weight[k].copy_(second.weight.t())
                 self.second_bias[k, 0].copy_(second.bias)
 
+    members: int = 0  # a group's stacked heads (dvfb.nets.members): inputs (M, N, in), outputs (M, K, N, out)
+
     def forward(self, h: torch.Tensor) -> torch.Tensor:
-        n = h.shape[0]
         hidden = F_nn.relu(self.first(h), inplace=True)  # (N, K*H); in place: see mlp()
+        if self.members:
+            m, n = h.shape[0], h.shape[1]
+            k = m * self.num_heads  # every (member, head) pair as one head: the ordinary baddbmm's shapes
+            hidden = hidden.view(m, n, self.num_heads, self.hidden_dim).transpose(1, 2).reshape(k, n, self.hidden_dim)
+            out = torch.baddbmm(self.second_bias.reshape(k, 1, self.out_dim), hidden,
+                                self.second_weight.reshape(k, self.hidden_dim, self.out_dim))
+            return out.view(m, self.num_heads, n, self.out_dim)  # (M, K, N, out)
+        n = h.shape[0]
         hidden = hidden.view(n, self.num_heads, self.hidden_dim).transpose(0, 1)  # (K, N, H)
         return torch.baddbmm(self.second_bias, hidden, self.second_weight)

@@ -30,8 +30,8 @@ class ForwardMap(nn.Module):
 
 
 def skill_values(forward_out: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-    """``Q_M,k = F_k . z`` for every head: ``(K, N, d), (N, d) -> (K, N)``."""
-    return (forward_out * z.unsqueeze(0)).sum(-1)
+    """``Q_M,k = F_k . z`` for every head: ``(K, N, d), (N, d) -> (K, N)`` (a group: leading M)."""
+    return (forward_out * z.unsqueeze(-3)).sum(-1)
 
 
 class BackwardMap(nn.Module):
@@ -60,9 +60,10 @@ def offdiag_mean(matrix: torch.Tensor) -> torch.Tensor:
 
 def orthonormality_loss(features: torch.Tensor) -> torch.Tensor:
     """``mean_{i!=j} G_ij^2 - 2 mean_i G_ii`` with ``G = features features^T`` (§7.10): the
-    regulariser that pushes ``E[f f^T]`` towards the identity (B of FB, phi of the SF family)."""
-    gram = features @ features.T
-    return offdiag_mean(gram.pow(2)) - 2 * gram.diagonal().mean()
+    regulariser that pushes ``E[f f^T]`` towards the identity (B of FB, phi of the SF family); one
+    loss per member for a group's ``(M, N, d)``."""
+    gram = features @ features.mT
+    return offdiag_mean(gram.pow(2)) - 2 * gram.diagonal(dim1=-2, dim2=-1).mean(-1)
 
 
 class TwinCritic(nn.Module):

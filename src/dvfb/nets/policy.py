@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from dvfb.nets.members import MemberGenerators, randn
 from dvfb.nets.layers import full_precision, layernorm_tanh_layer, mlp, orthogonal_init_
 
 # Actions are clamped strictly inside the box so that tanh-space quantities stay finite (§3.3).
@@ -20,6 +21,8 @@ def standard_normal(like: torch.Tensor, generator: torch.Generator | None = None
     same values ``randn_like`` gives)."""
     if generator is None:
         return torch.randn_like(like)
+    if isinstance(generator, MemberGenerators):  # a group: member k draws its own slice
+        return randn(like.shape[1:], generator, like.device, like.dtype)
     return torch.randn(like.shape, generator=generator, device=like.device, dtype=like.dtype)
 
 
@@ -95,8 +98,10 @@ class HostActor:
     the views are rebuilt on the next call. CPU float32 only.
     """
 
-    def __init__(self, actor: Actor):
-        self.actor = actor
+    def __init__(self, actor: Actor, member: int | None = None):
+        # member: member k's slice of a group's stacked actor (docs/members.md), evaluated exactly
+        # as its separate run's actor is.
+        self.actor, self.member = actor, member
         self._params = list(actor.parameters())
         if any(p.device.type != "cpu" or p.dtype != torch.float32 for p in self._params):
             raise ValueError("HostActor needs a float32 actor on the CPU")
@@ -106,10 +111,11 @@ class HostActor:
     def _bind(self) -> None:
         actor = self.actor
         if actor.encoder is not None:
-            self._streams = (_host_layers(actor.encoder.first), _host_layers(actor.encoder.second))
+            self._streams = (_host_layers(actor.encoder.first, self.member),
+                             _host_layers(actor.encoder.second, self.member))
         else:
             self._streams = None
-        self._head = _host_layers(actor.head)
+        self._head = _host_layers(actor.head, self.member)
         self._storage = self._storage_key()
 
     def _storage_key(self) -> tuple[int, ...]:
@@ -130,16 +136,21 @@ class HostActor:
         return np.tanh(h, out=h)
 
 
-def _host_layers(seq: nn.Sequential) -> list[tuple]:
+def _host_layers(seq: nn.Sequential, member: int | None = None) -> list[tuple]:
     """(kind, numpy views...) per layer of an MLP built from Linear/LayerNorm/Tanh/ReLU."""
     layers: list[tuple] = []
+
+    def view(param: torch.Tensor) -> np.ndarray:
+        array = param.detach().numpy()
+        return array if member is None else array[member]
+
     for module in seq:
         if isinstance(module, nn.Linear):
             # weight.T is a transposed view; BLAS reads it without a copy.
-            layers.append(("linear", module.weight.detach().numpy().T, module.bias.detach().numpy()))
+            layers.append(("linear", view(module.weight).T, view(module.bias)))
         elif isinstance(module, nn.LayerNorm):
             (width,) = module.normalized_shape
-            layers.append(("layer_norm", module.weight.detach().numpy(), module.bias.detach().numpy(),
+            layers.append(("layer_norm", view(module.weight), view(module.bias),
                            float(module.eps), np.float32(1.0 / width)))
         elif isinstance(module, nn.Tanh):
             layers.append(("tanh",))

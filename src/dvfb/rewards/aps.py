@@ -23,6 +23,7 @@ from torch.nn import functional as F_nn
 
 from dvfb.config import param
 from dvfb.nets import call_network, mlp, orthogonal_init_
+from dvfb.nets.members import member_mean
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.knn import KNNConfig, ParticleEntropy
@@ -63,7 +64,7 @@ class APSReward(IntrinsicReward):
         return F_nn.normalize(feature, dim=-1) if normalise else feature
 
     def loss(self, batch: Batch, run: Runner = call_network) -> torch.Tensor:
-        return -(batch.z * self.phi(batch.next_obs, run)).sum(dim=-1).mean()
+        return -member_mean((batch.z * self.phi(batch.next_obs, run)).sum(dim=-1), self.members)
 
     def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
         loss = self.loss(batch, run)
@@ -88,7 +89,8 @@ class APSReward(IntrinsicReward):
     def update_and_score(self, batch: Batch, metrics: dict, run: Runner = call_network) -> torch.Tensor:
         metrics.update(self.update(batch, run))
         entropy, sf = self.reward_parts(batch, run)  # with the updated features, as URLB
-        metrics.update(aps_entropy_reward=entropy.mean(), aps_sf_reward=sf.mean())
+        metrics.update(aps_entropy_reward=member_mean(entropy, self.members),
+                       aps_sf_reward=member_mean(sf, self.members))
         return entropy + sf
 
     @torch.no_grad()
@@ -102,6 +104,10 @@ class APSReward(IntrinsicReward):
         non-unit one (URLB would divide 0 by 0); without a host sync.
         """
         features = self.phi(obs, run)
-        weighted = (reward.reshape(1, -1).to(features.dtype) @ features)[0]  # (d,)
-        norm = weighted.norm()
+        if self.members:  # (M, N, O) states: one task per member, (M, d)
+            weighted = (reward.reshape(self.members, 1, -1).to(features.dtype) @ features).squeeze(-2)
+            norm = weighted.norm(dim=-1, keepdim=True)
+        else:
+            weighted = (reward.reshape(1, -1).to(features.dtype) @ features)[0]  # (d,)
+            norm = weighted.norm()
         return torch.where(norm > 1e-12, weighted / norm.clamp_min(1e-12), torch.zeros_like(weighted))

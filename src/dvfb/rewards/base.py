@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 from dvfb.nets import adam, call_network
+from dvfb.nets.members import minimise
 from dvfb.replay import Batch
 
 Runner = Callable[..., torch.Tensor]
@@ -43,6 +44,8 @@ class IntrinsicReward(nn.Module):
     # Which batch column holds the skill each row is paired with: None for the stored skill
     # (batch.z); DVFB names the column of B's labels.
     skill_column: str | None = None
+    # A group's member count (docs/members.md): set on every module by dvfb.nets.members.stack_agents.
+    members: int = 0
 
     def skills(self, batch: Batch) -> torch.Tensor:
         """The skill of every row this module pairs the row with (see ``skill_column``)."""
@@ -68,7 +71,6 @@ class IntrinsicReward(nn.Module):
             return self.score(batch, run)
 
     def step(self, loss: torch.Tensor) -> None:
-        """One optimiser step on ``loss`` (zero_grad, backward, step)."""
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
+        """One optimiser step on ``loss`` (zero_grad, backward, step); a group's ``(M,)`` losses
+        are each their member's (:func:`~dvfb.nets.members.minimise`)."""
+        minimise(self.optimizer, loss)

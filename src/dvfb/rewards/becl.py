@@ -19,6 +19,7 @@ from torch.nn import functional as F_nn
 
 from dvfb.config import param
 from dvfb.nets import call_network, mlp, orthogonal_init_
+from dvfb.nets.members import member_mean
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.skills import skill_index
@@ -38,7 +39,8 @@ class BeCLConfig:
 
 
 def becl_contrastive_loss(features: torch.Tensor, labels: torch.Tensor, temperature: float) -> torch.Tensor:
-    """Per-row loss ``(N, 1)`` of BeCL's one-positive contrastive objective.
+    """Per-row loss ``(N, 1)`` of BeCL's one-positive contrastive objective (a group's ``(M, N, d)``
+    features and ``(M, N)`` labels: ``(M, N, 1)``, each member within its own rows).
 
     With ``u = normalize(features)`` and ``S_ij = u_i . u_j / T`` over ``j != i``: each row's
     maximum is subtracted and ``E = exp(S - max)``; the positive of anchor ``i`` is the *first*
@@ -50,19 +52,19 @@ def becl_contrastive_loss(features: torch.Tensor, labels: torch.Tensor, temperat
     out of the row maximum and contribute ``exp(-inf) = 0`` to the sums (no boolean indexing, hence
     no host sync). Indices stay those of the full row, which is why the fallback is translated.
     """
-    n = features.shape[0]
+    n = features.shape[-2]
     u = F_nn.normalize(features, dim=-1)
     eye = torch.eye(n, dtype=torch.bool, device=features.device)
-    sim = (u @ u.T / temperature).masked_fill(eye, float("-inf"))
+    sim = (u @ u.mT / temperature).masked_fill(eye, float("-inf"))
     sim = sim - sim.amax(dim=-1, keepdim=True)
     exp_sim = sim.exp()
     idx = torch.arange(n, device=features.device)
-    same = (labels.unsqueeze(0) == labels.unsqueeze(1)) & ~eye
+    same = (labels.unsqueeze(-2) == labels.unsqueeze(-1)) & ~eye
     # First same-skill index per row (n where there is none), then the reduced row's index 0.
     first = torch.where(same, idx.unsqueeze(0), n).amin(dim=-1)
     fallback = (idx == 0).long()
     positive_idx = torch.where(first < n, first, fallback)
-    positive = exp_sim.gather(1, positive_idx.unsqueeze(1))
+    positive = exp_sim.gather(-1, positive_idx.unsqueeze(-1))
     negative = exp_sim.sum(dim=-1, keepdim=True)
     return -torch.log(positive / (negative + 1e-6) + 1e-6)
 
@@ -95,7 +97,7 @@ class BeCLReward(IntrinsicReward):
         return becl_contrastive_loss(run(self.net, batch.next_obs), skill_index(batch.z), self.config.temperature)
 
     def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
-        loss = self.losses(batch, run).mean()
+        loss = member_mean(self.losses(batch, run), self.members)
         self.step(loss)
         return {"contrastive_loss": loss.detach()}
 

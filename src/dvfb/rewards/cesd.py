@@ -36,9 +36,11 @@ from torch import nn
 from torch.nn import functional as F_nn
 
 from dvfb.nets import RunningMeanStd, call_network, orthogonal_init_
+from dvfb.nets.members import member_mean, member_sum, per_member
 from dvfb.replay import Batch
 from dvfb.rewards.base import Runner
 from dvfb.rewards.contrastive import CICConfig, CICReward
+from dvfb.rewards.knn import gather_rows
 from dvfb.rewards.proto import sample_one_per_row, sinkhorn_knopp
 from dvfb.skills import skill_index
 
@@ -53,12 +55,15 @@ def masked_nearest_distances(rep: torch.Tensor, allowed: torch.Tensor, k: int) -
     A row with fewer than ``k`` allowed candidates also gets forbidden ones (finite distances);
     the caller discards such rows.
     """
-    centred = rep - rep.mean(dim=0, keepdim=True)  # translation invariant; less cancellation
+    centred = rep - rep.mean(dim=-2, keepdim=True)  # translation invariant; less cancellation
     sq_norm = centred.pow(2).sum(-1)
-    sq_dist = torch.addmm(sq_norm.unsqueeze(0), centred, centred.T, alpha=-2.0).add_(sq_norm.unsqueeze(1))
+    if rep.dim() == 2:
+        sq_dist = torch.addmm(sq_norm.unsqueeze(0), centred, centred.T, alpha=-2.0).add_(sq_norm.unsqueeze(1))
+    else:  # a group (M, N, d): one product per member
+        sq_dist = torch.baddbmm(sq_norm.unsqueeze(-2), centred, centred.mT, alpha=-2.0).add_(sq_norm.unsqueeze(-1))
     sq_dist = sq_dist.masked_fill(~allowed, float("inf"))
-    index = sq_dist.topk(k, dim=1, largest=False, sorted=False).indices  # (N, k)
-    return (rep.unsqueeze(1) - rep[index]).norm(dim=-1)
+    index = sq_dist.topk(k, dim=-1, largest=False, sorted=False).indices  # (N, k)
+    return (rep.unsqueeze(-2) - gather_rows(rep, index)).norm(dim=-1)
 
 
 def partitioned_apt_reward(rep: torch.Tensor, cluster: torch.Tensor, skill: torch.Tensor, num_clusters: int,
@@ -84,40 +89,51 @@ def partitioned_apt_reward(rep: torch.Tensor, cluster: torch.Tensor, skill: torc
     Also returns detached metrics: the number of scored clusters and the fraction of states whose
     cluster is not their skill.
     """
-    n = rep.shape[0]
+    members = rep.shape[0] if rep.dim() == 3 else 0  # a group: (M, N, d), (M, N), (M, N), stats (M,)
+    n = rep.shape[-2]
     k_eff = min(k, n)
     labels = torch.arange(num_clusters, device=rep.device)
-    member = cluster.unsqueeze(1) == labels  # (N, P)
-    size = member.sum(dim=0)  # (P,)
+    member = cluster.unsqueeze(-1) == labels  # (N, P)
+    size = member.sum(dim=-2)  # (P,)
     scored = size > k  # (P,): clusters that are rewarded
     off_skill = skill != cluster  # (N,)
-    off_count = (member & off_skill.unsqueeze(1)).sum(dim=0)  # B_i, (P,)
+    off_count = (member & off_skill.unsqueeze(-1)).sum(dim=-2)  # B_i, (P,)
 
-    dist = masked_nearest_distances(rep, cluster.unsqueeze(1) == cluster.unsqueeze(0), k_eff)  # (N, k)
+    dist = masked_nearest_distances(rep, cluster.unsqueeze(-1) == cluster.unsqueeze(-2), k_eff)  # (N, k)
 
     if stats is not None:
         # Per-cluster count, mean and unbiased variance of the cluster's N_i * k distances (two passes).
         d64, member64 = dist.double(), member.double()
         count = torch.where(scored, size.double() * k_eff, 0.0)
-        mean = torch.where(scored, (member64.T @ d64.sum(dim=1)) / count.clamp_min(1.0), 0.0)
-        sq_dev = (d64 - mean[cluster].unsqueeze(1)).pow(2).sum(dim=1)
-        var = torch.where(scored, (member64.T @ sq_dev) / (count - 1.0).clamp_min(1.0), 0.0)
+        mean = torch.where(scored, _cluster_sums(member64, d64.sum(dim=-1)) / count.clamp_min(1.0), 0.0)
+        sq_dev = (d64 - mean.gather(-1, cluster).unsqueeze(-1)).pow(2).sum(dim=-1)
+        var = torch.where(scored, _cluster_sums(member64, sq_dev) / (count - 1.0).clamp_min(1.0), 0.0)
         # The tracker after the fold of clusters 0..i, for every i: prior (M0, S0, n0) plus the groups.
-        m0, s0, n0 = stats.mean, stats.var, stats.count
-        total = n0 + count.cumsum(0)
-        running_mean = (n0 * m0 + (count * mean).cumsum(0)) / total
+        m0, s0, n0 = (per_member(x, count) for x in (stats.mean, stats.var, stats.count))
+        total = n0 + count.cumsum(-1)
+        running_mean = (n0 * m0 + (count * mean).cumsum(-1)) / total
         upto = torch.ones(num_clusters, num_clusters, dtype=torch.bool, device=rep.device).tril()  # [i, j]: j <= i
-        between = torch.where(upto, count * (mean.unsqueeze(0) - running_mean.unsqueeze(1)).pow(2), 0.0).sum(1)
-        running_var = (s0 * n0 + (count * var).cumsum(0) + n0 * (m0 - running_mean).pow(2) + between) / total
-        stats.mean.copy_(running_mean[-1])
-        stats.var.copy_(running_var[-1])
-        stats.count.copy_(total[-1])
-        dist = dist / running_var.to(dist.dtype)[cluster].unsqueeze(1)
-    entropy = torch.log1p((dist - clip).clamp_min(0.0).mean(dim=1))
+        between = torch.where(upto, count.unsqueeze(-2) * (mean.unsqueeze(-2) - running_mean.unsqueeze(-1)).pow(2),
+                              0.0).sum(-1)
+        running_var = (s0 * n0 + (count * var).cumsum(-1) + n0 * (m0 - running_mean).pow(2) + between) / total
+        stats.mean.copy_(running_mean[..., -1])
+        stats.var.copy_(running_var[..., -1])
+        stats.count.copy_(total[..., -1])
+        dist = dist / running_var.to(dist.dtype).gather(-1, cluster).unsqueeze(-1)
+    entropy = torch.log1p((dist - clip).clamp_min(0.0).mean(dim=-1))
     bonus = constraint_factor / (1.0 + off_count.to(rep.dtype))
-    reward = torch.where(scored[cluster], entropy + bonus[cluster], torch.zeros_like(entropy))
-    metrics = {"scored_clusters": scored.sum().to(rep.dtype), "off_cluster_fraction": off_skill.to(rep.dtype).mean()}
-    return reward.unsqueeze(1), metrics
+    reward = torch.where(scored.gather(-1, cluster), entropy + bonus.gather(-1, cluster), torch.zeros_like(entropy))
+    metrics = {"scored_clusters": member_sum(scored, members).to(rep.dtype),
+               "off_cluster_fraction": member_mean(off_skill.to(rep.dtype), members)}
+    return reward.unsqueeze(-1), metrics
+
+
+def _cluster_sums(member: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``sum_i member_ip values_i`` per cluster p: ``(N, P), (N,) -> (P,)``, or per member
+    ``(M, N, P), (M, N) -> (M, P)``."""
+    if member.dim() == 2:
+        return member.T @ values
+    return (member.mT @ values.unsqueeze(-1)).squeeze(-1)
 
 
 class CeSDReward(CICReward):
@@ -138,18 +154,18 @@ class CeSDReward(CICReward):
     @torch.no_grad()
     def normalize_protos(self) -> None:
         """Rescale every prototype row to unit L2 norm, in place (the optimiser moves them off)."""
-        self.protos.weight.copy_(F_nn.normalize(self.protos.weight, dim=1))
+        self.protos.weight.copy_(F_nn.normalize(self.protos.weight, dim=-1))
 
     def cluster_scores(self, rep: torch.Tensor, run: Runner = call_network) -> torch.Tensor:
         """``C normalize(rep) / T_p``, ``(N, P)``; call :meth:`normalize_protos` first."""
-        return run(self.protos, F_nn.normalize(rep, dim=1)) / self.proto_temperature
+        return run(self.protos, F_nn.normalize(rep, dim=-1)) / self.proto_temperature
 
     @torch.no_grad()
     def assign(self, rep: torch.Tensor, run: Runner = call_network) -> torch.Tensor:
         """One cluster per state, ``(N,)``, drawn from ``softmax(C normalize(rep) / T_p)`` with
         torch's random stream (no host sync)."""
         self.normalize_protos()
-        return sample_one_per_row(F_nn.softmax(self.cluster_scores(rep, run), dim=1), self.generator)
+        return sample_one_per_row(F_nn.softmax(self.cluster_scores(rep, run), dim=-1), self.generator)
 
     def prototype_loss(self, batch: Batch, run: Runner = call_network,
                        next_rep: torch.Tensor | None = None) -> torch.Tensor:
@@ -162,8 +178,8 @@ class CeSDReward(CICReward):
             if next_rep is None:
                 next_rep = run(self.encoders.state_net, batch.next_obs)
             target = sinkhorn_knopp(self.cluster_scores(next_rep, run), self.sinkhorn_iters)
-        log_p = F_nn.log_softmax(self.cluster_scores(rep, run), dim=1)
-        return -(target * log_p).sum(dim=1).mean()
+        log_p = F_nn.log_softmax(self.cluster_scores(rep, run), dim=-1)
+        return -member_mean((target * log_p).sum(dim=-1), self.members)
 
     def update_prototypes(self, batch: Batch, run: Runner = call_network,
                           next_rep: torch.Tensor | None = None) -> dict[str, torch.Tensor]:

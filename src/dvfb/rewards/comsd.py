@@ -27,6 +27,7 @@ from torch.nn import functional as F_nn
 from dvfb.config import param
 from dvfb.errors import ConfigError
 from dvfb.nets import call_network
+from dvfb.nets.members import member_mean
 from dvfb.replay import Batch
 from dvfb.rewards.base import Runner
 from dvfb.rewards.contrastive import CICReward, CICSkillConfig
@@ -57,7 +58,7 @@ def skill_weight(skill: torch.Tensor, low: float, high: float, mapping: str = "f
     """``beta(z) = low + (high - low) * m(z)``, ``(N, 1)``; ``m`` is ``z_1`` or the mean coordinate."""
     if mapping not in WEIGHT_MAPPINGS:
         raise ConfigError(f"weight_mapping must be one of {WEIGHT_MAPPINGS}, got {mapping!r}")
-    m = skill[:, :1] if mapping == "first" else skill.mean(dim=-1, keepdim=True)
+    m = skill[..., :1] if mapping == "first" else skill.mean(dim=-1, keepdim=True)
     return low + (high - low) * m
 
 
@@ -93,5 +94,6 @@ class ComSDReward(CICReward):
     def update_and_score(self, batch: Batch, metrics: dict, run: Runner = call_network) -> torch.Tensor:
         metrics.update(self.update(batch, run))
         r_exp, r_div, beta = self.reward_terms(batch, run)
-        metrics.update(exploration_reward=r_exp.mean(), diversity_reward=r_div.mean())
+        metrics.update(exploration_reward=member_mean(r_exp, self.members),
+                       diversity_reward=member_mean(r_div, self.members))
         return r_exp + beta * r_div

@@ -22,6 +22,7 @@ from torch.nn import functional as F_nn
 
 from dvfb.config import param
 from dvfb.nets import call_network, mlp, orthogonal_init_
+from dvfb.nets.members import member_mean, row_products
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.knn import KNNConfig, ParticleEntropy
@@ -31,20 +32,21 @@ CE_AGGREGATES = ("log_of_mean", "mean_of_log")
 
 
 def nce_loss(query: torch.Tensor, key: torch.Tensor, temperature: float = 1.0,
-             exact_positive: bool = False) -> torch.Tensor:
+             exact_positive: bool = False, members: int = 0) -> torch.Tensor:
     """Mean over rows of ``-log(exp(S_ii) / (neg_i + 1e-6))`` with ``S = q k^T / T`` (§7.4).
 
     ``neg_i = max(sum_j exp(S_ij) - e^{1/T}, 1e-6)``: the CIC trick removes the upper bound of the
-    positive term. With ``exact_positive`` the exact ``exp(S_ii)`` is removed instead.
+    positive term. With ``exact_positive`` the exact ``exp(S_ii)`` is removed instead. A group's
+    ``(M, N, c)`` inputs (``members = M``) give each member's own loss, ``(M,)``.
     """
     q = F_nn.normalize(query, dim=-1)
     k = F_nn.normalize(key, dim=-1)
-    sim = q @ k.T / temperature
+    sim = row_products(q, k, members) / temperature
     exp_sim = sim.exp()
-    positive = sim.diagonal()
-    subtract = exp_sim.diagonal() if exact_positive else math.exp(1.0 / temperature)
+    positive = sim.diagonal(dim1=-2, dim2=-1)
+    subtract = exp_sim.diagonal(dim1=-2, dim2=-1) if exact_positive else math.exp(1.0 / temperature)
     negative = (exp_sim.sum(-1) - subtract).clamp_min(1e-6)
-    return (torch.log(negative + 1e-6) - positive).mean()
+    return member_mean(torch.log(negative + 1e-6) - positive, members)
 
 
 def contrastive_entropy_reward(key: torch.Tensor, query: torch.Tensor, k: int = 12,
@@ -59,7 +61,7 @@ def contrastive_entropy_reward(key: torch.Tensor, query: torch.Tensor, k: int = 
         raise ValueError(f"ce_neighbours must be one of {CE_NEIGHBOURS}, got {neighbours!r}")
     if aggregate not in CE_AGGREGATES:
         raise ValueError(f"ce_aggregate must be one of {CE_AGGREGATES}, got {aggregate!r}")
-    cos = F_nn.normalize(key, dim=-1) @ F_nn.normalize(query, dim=-1).T  # (N, N)
+    cos = F_nn.normalize(key, dim=-1) @ F_nn.normalize(query, dim=-1).mT  # (N, N)
     k = min(k, cos.shape[-1])
     nearest = cos.topk(k, dim=-1, largest=(neighbours == "most_similar")).values
     distance = (1.0 - nearest / temperature).clamp_min(0.0)
@@ -86,9 +88,9 @@ class ContrastiveEncoders(nn.Module):
     def key(self, obs: torch.Tensor, next_obs: torch.Tensor, run=None) -> torch.Tensor:
         """``pred([g(s), g(s')])``; ``run(net, x)``, if given, calls the two networks."""
         run = run if run is not None else call_network
-        # One pass of g over both columns instead of two.
-        both = run(self.state_net, torch.cat([obs, next_obs], dim=0))
-        g_obs, g_next = both.chunk(2, dim=0)
+        # One pass of g over both columns instead of two (rows: dim -2, after a group's member axis).
+        both = run(self.state_net, torch.cat([obs, next_obs], dim=-2))
+        g_obs, g_next = both.chunk(2, dim=-2)
         return run(self.transition_net, torch.cat([g_obs, g_next], dim=-1))
 
     def query(self, skill: torch.Tensor) -> torch.Tensor:
@@ -114,7 +116,7 @@ class ContrastiveEntropyReward(IntrinsicReward):
 
     def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
         key, query = self._key_query(batch, run)
-        loss = nce_loss(query, key, self.nce_temperature, self.nce_exact_positive)
+        loss = nce_loss(query, key, self.nce_temperature, self.nce_exact_positive, self.members)
         self.step(loss)
         return {"nce_loss": loss.detach()}
 
@@ -160,7 +162,7 @@ class CICReward(IntrinsicReward):
     def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
         key = self.encoders.key(batch.obs, batch.next_obs, run)
         query = run(self.encoders.skill_net, self.skills(batch))
-        loss = nce_loss(query, key, self.config.temperature)
+        loss = nce_loss(query, key, self.config.temperature, members=self.members)
         self.step(loss)
         return {"nce_loss": loss.detach()}
 

@@ -20,6 +20,7 @@ from torch.nn import functional as F_nn
 
 from dvfb.config import param
 from dvfb.nets import call_network, mlp, orthogonal_init_
+from dvfb.nets.members import member_mean
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.skills import skill_index
@@ -35,6 +36,15 @@ class DIAYNConfig:
     hidden_dim: int = param(1024, "Hidden width of the discriminator q(z|s).", at_least=1)
     scale: float = param(1.0, "Multiplier of the reward log q(z|s') + log d.", at_least=0)
     lr: float = param(1e-4, "Adam learning rate of the discriminator.", above=0)
+
+
+def rowwise_cross_entropy(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The cross-entropy of every row, ``target``'s shape: logits ``(..., N, d)``, target ``(..., N)``
+    (a group's ``(M, N, d)`` member by member: F.cross_entropy wants the classes on dim 1)."""
+    if logits.dim() == 2:
+        return F_nn.cross_entropy(logits, target, reduction="none")
+    # One call per member, on the ordinary shapes: it rounds as a separate run's.
+    return torch.stack([rowwise_cross_entropy(logits[k], target[k]) for k in range(logits.shape[0])])
 
 
 class DIAYNReward(IntrinsicReward):
@@ -54,8 +64,11 @@ class DIAYNReward(IntrinsicReward):
         """Mean cross-entropy of the skill index on ``s'``, and the discriminator's accuracy."""
         logits = self.logits(batch.next_obs, run)
         target = skill_index(batch.z)
-        accuracy = (logits.detach().argmax(dim=-1) == target).float().mean()
-        return F_nn.cross_entropy(logits, target), accuracy
+        accuracy = member_mean((logits.detach().argmax(dim=-1) == target).float(), self.members)
+        if not self.members:
+            return F_nn.cross_entropy(logits, target), accuracy
+        # Each member's own mean-reduced cross-entropy: its gradient rounds as a separate run's.
+        return torch.stack([F_nn.cross_entropy(logits[k], target[k]) for k in range(self.members)]), accuracy
 
     def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
         loss, accuracy = self.loss(batch, run)
@@ -66,5 +79,5 @@ class DIAYNReward(IntrinsicReward):
     def score(self, batch: Batch, run: Runner = call_network) -> torch.Tensor:
         # Recomputed after the step: URLB scores with the updated discriminator.
         log_q = F_nn.log_softmax(self.logits(batch.next_obs, run), dim=-1)
-        log_q_z = log_q.gather(1, skill_index(batch.z).unsqueeze(-1))  # (N, 1)
+        log_q_z = log_q.gather(-1, skill_index(batch.z).unsqueeze(-1))  # (N, 1)
         return self.config.scale * (log_q_z + math.log(self.skill_dim))

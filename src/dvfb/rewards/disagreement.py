@@ -16,6 +16,7 @@ import torch
 from dvfb.config import param
 from dvfb.errors import ConfigError
 from dvfb.nets import TwinHead, call_network
+from dvfb.nets.members import member_mean
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 
@@ -44,13 +45,13 @@ class DisagreementReward(IntrinsicReward):
                                  self.config.ensemble_size, init="default")
 
     def predict(self, batch: Batch, run: Runner = call_network) -> torch.Tensor:
-        """Every model's prediction of ``s'`` from ``(s, a)``: ``(K, N, obs_dim)``."""
+        """Every model's prediction of ``s'`` from ``(s, a)``: ``(K, N, obs_dim)`` (a group's ``(M, K, N, obs_dim)``)."""
         return run(self.ensemble, torch.cat([batch.obs, batch.action], dim=-1))
 
     def loss(self, batch: Batch, run: Runner = call_network) -> torch.Tensor:
         """Mean over rows and models of ``||s' - f_k(s, a)||_2``."""
-        error = batch.next_obs.unsqueeze(0) - self.predict(batch, run)
-        return error.norm(dim=-1).mean()
+        error = batch.next_obs.unsqueeze(-3) - self.predict(batch, run)
+        return member_mean(error.norm(dim=-1), self.members)
 
     def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
         loss = self.loss(batch, run)
@@ -62,4 +63,4 @@ class DisagreementReward(IntrinsicReward):
         # The update's predictions are stale after the step, so the score runs the models again
         # (hence no update_and_score override).
         prediction = self.predict(batch, run)
-        return prediction.var(dim=0, unbiased=True).mean(dim=-1, keepdim=True)
+        return prediction.var(dim=-3, unbiased=True).mean(dim=-1, keepdim=True)

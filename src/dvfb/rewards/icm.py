@@ -22,6 +22,7 @@ from torch import nn
 
 from dvfb.config import param
 from dvfb.nets import call_network, layernorm_tanh_layer, mlp, orthogonal_init_
+from dvfb.nets.members import member_mean
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.knn import NORMALISERS, KNNConfig, ParticleEntropy
@@ -60,12 +61,13 @@ class ICMAPTReward(IntrinsicReward):
     def loss(self, batch: Batch, run: Runner = call_network) -> torch.Tensor:
         """Forward plus inverse L2 error, each averaged over the batch."""
         # One trunk pass over [s; s']: LayerNorm is per row, so this equals two separate passes.
-        rep_obs, rep_next = run(self.trunk, torch.cat([batch.obs, batch.next_obs], dim=0)).chunk(2, dim=0)
+        # Rows are dim -2 (after a group's member axis).
+        rep_obs, rep_next = run(self.trunk, torch.cat([batch.obs, batch.next_obs], dim=-2)).chunk(2, dim=-2)
         next_hat = run(self.forward_model, torch.cat([rep_obs, batch.action], dim=-1))
         action_hat = run(self.inverse_model, torch.cat([rep_obs, rep_next], dim=-1))
         forward_error = (rep_next - next_hat).norm(dim=-1)
         inverse_error = (batch.action - action_hat).norm(dim=-1)
-        return forward_error.mean() + inverse_error.mean()
+        return member_mean(forward_error, self.members) + member_mean(inverse_error, self.members)
 
     def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
         loss = self.loss(batch, run)

@@ -27,6 +27,7 @@ from torch import nn
 from dvfb.config import param
 from dvfb.errors import ConfigError
 from dvfb.nets import RunningMeanStd
+from dvfb.nets.members import per_member
 
 NORMALISERS = ("none", "mean", "var")
 
@@ -50,7 +51,8 @@ class KNNConfig:
 
 def nearest_distances(source: torch.Tensor, target: torch.Tensor, k: int) -> torch.Tensor:
     """The k smallest Euclidean distances from every row of ``source`` to the rows of ``target``,
-    ascending, ``(N, k)`` (``k`` is capped at ``M``, the number of targets).
+    ascending, ``(N, k)`` (``k`` is capped at ``M``, the number of targets). A group's
+    ``(G, N, d)`` against ``(G, M, d)`` gives ``(G, N, k)``, each member against its own targets.
 
     The candidates are chosen on squared distances in the matmul form
     ``|s|^2 + |t|^2 - 2 s.t`` (an ``N x M`` matrix, no ``N x M x d`` tensor); only the chosen
@@ -59,16 +61,28 @@ def nearest_distances(source: torch.Tensor, target: torch.Tensor, k: int) -> tor
     out near ``sqrt(eps) * |x|`` instead of exactly 0; the recomputation gives exact zeros and
     full-precision values at ``N * k * d`` cost.
     """
-    k = min(k, target.shape[0])
+    k = min(k, target.shape[-2])
     # Distances are translation invariant; centring shrinks |x|^2 and with it the cancellation.
-    centre = target.mean(dim=0, keepdim=True)
+    centre = target.mean(dim=-2, keepdim=True)
     s, t = source - centre, target - centre
-    sq_dist = torch.addmm(t.pow(2).sum(-1).unsqueeze(0), s, t.T, alpha=-2.0)
+    if target.dim() == 2:
+        sq_dist = torch.addmm(t.pow(2).sum(-1).unsqueeze(0), s, t.T, alpha=-2.0)
+    else:
+        sq_dist = torch.baddbmm(t.pow(2).sum(-1).unsqueeze(-2), s, t.mT, alpha=-2.0)
     sq_dist.add_(s.pow(2).sum(-1, keepdim=True))
-    index = sq_dist.topk(k, dim=1, largest=False, sorted=False).indices  # (N, k)
-    exact = (source.unsqueeze(1) - target[index]).norm(dim=-1)  # (N, k, d) -> (N, k)
+    index = sq_dist.topk(k, dim=-1, largest=False, sorted=False).indices  # (N, k)
+    exact = (source.unsqueeze(-2) - gather_rows(target, index)).norm(dim=-1)  # (N, k, d) -> (N, k)
     # Re-sort on the exact values so that the last column is the k-th nearest neighbour.
-    return exact.sort(dim=1).values
+    return exact.sort(dim=-1).values
+
+
+def gather_rows(target: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``target[index]`` along the row axis for any index shape: ``(M, d)[(N, k)] -> (N, k, d)``,
+    or per member ``(G, M, d)[(G, N, k)] -> (G, N, k, d)``."""
+    if target.dim() == 2:
+        return target[index]
+    members = torch.arange(target.shape[0], device=index.device).reshape(-1, *([1] * (index.dim() - 1)))
+    return target[members, index]
 
 
 def particle_entropy(rep: torch.Tensor, k: int, average: bool, clip: float, normaliser: str,
@@ -88,13 +102,13 @@ def particle_entropy(rep: torch.Tensor, k: int, average: bool, clip: float, norm
         raise ConfigError(f"normaliser {normaliser!r} needs running statistics (stats=None given)")
     dist = nearest_distances(rep, rep if target is None else target, k)  # (N, k), ascending
     if not average:
-        dist = dist[:, -1:]
+        dist = dist[..., -1:]
     if normaliser != "none":
-        mean, var = stats.update(dist)
-        dist = dist / (mean if normaliser == "mean" else var).to(dist.dtype)
+        mean, var = stats.update(dist)  # () or a group's (G,)
+        dist = dist / per_member(mean if normaliser == "mean" else var, dist).to(dist.dtype)
     if clip >= 0.0:  # URLB skips the clip for a negative value
         dist = (dist - clip).clamp_min(0.0)
-    return torch.log1p(dist.mean(dim=1, keepdim=True))
+    return torch.log1p(dist.mean(dim=-1, keepdim=True))
 
 
 class ParticleEntropy(nn.Module):

@@ -29,6 +29,7 @@ from torch.nn import functional as F_nn
 from dvfb.config import param
 from dvfb.errors import ConfigError
 from dvfb.nets import call_network, make_target, mlp, orthogonal_init_, soft_update_
+from dvfb.nets.members import MemberGenerators, member_mean, take_rows
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.knn import nearest_distances
@@ -56,27 +57,37 @@ def sinkhorn_knopp(scores: torch.Tensor, iters: int = 3) -> torch.Tensor:
     As URLB: subtract the global maximum (so ``exp`` cannot overflow), exponentiate, transpose to
     ``(P, N)``, normalise the total to 1, then ``iters`` times scale the prototype rows to mass
     ``1/P`` and the sample columns to mass ``1/N``; finally every sample column is normalised to 1.
+    A group's ``(M, N, P)`` scores give ``(M, N, P)``, each member shifted and normalised on its own.
     """
-    q = (scores - scores.max()).exp().T  # (P, N)
-    q = q / q.sum()
-    num_protos, n = q.shape
+    if scores.dim() == 2:
+        q = (scores - scores.max()).exp().T  # (P, N)
+        q = q / q.sum()
+    else:  # the "global" max and total are each member's own
+        q = (scores - scores.amax(dim=(-2, -1), keepdim=True)).exp().mT  # (M, P, N)
+        q = q / q.sum(dim=(-2, -1), keepdim=True)
+    num_protos, n = q.shape[-2:]
     for _ in range(iters):
-        q = q * ((1.0 / num_protos) / q.sum(dim=1, keepdim=True))
-        q = q * ((1.0 / n) / q.sum(dim=0, keepdim=True))
-    q = q / q.sum(dim=0, keepdim=True)
-    return q.T
+        q = q * ((1.0 / num_protos) / q.sum(dim=-1, keepdim=True))
+        q = q * ((1.0 / n) / q.sum(dim=-2, keepdim=True))
+    q = q / q.sum(dim=-2, keepdim=True)
+    return q.mT
 
 
 def sample_one_per_row(prob: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-    """One index per row of ``prob`` (``(P, N)``, rows summing to 1), drawn from that row: ``(P,)``.
+    """One index per row of ``prob`` (``(P, N)``, rows summing to 1), drawn from that row: ``(P,)``;
+    a group's ``(M, P, N)`` with :class:`~dvfb.nets.members.MemberGenerators` gives ``(M, P)``,
+    member k's drawn from its own stream.
 
     This is exactly what ``torch.multinomial(prob, 1)`` computes on its one-sample path (the
     exponential race ``argmax(prob / E)``, ``E ~ Exp(1)`` from torch's generator, so the same draws
     under the same seed), without the validity check that some torch versions perform by reading
     a value back to the host on every call.
     """
-    race = torch.empty_like(prob).exponential_(1.0, generator=generator)
-    return (prob / race).argmax(dim=1)
+    if isinstance(generator, MemberGenerators):
+        race = torch.stack([torch.empty_like(p).exponential_(1.0, generator=g) for p, g in zip(prob, generator)])
+    else:
+        race = torch.empty_like(prob).exponential_(1.0, generator=generator)
+    return (prob / race).argmax(dim=-1)
 
 
 class ProtoReward(IntrinsicReward):
@@ -112,25 +123,27 @@ class ProtoReward(IntrinsicReward):
     @torch.no_grad()
     def normalize_protos(self) -> None:
         """Rescale every prototype row to unit L2 norm, in place (the optimiser moves them off)."""
-        self.protos.weight.copy_(F_nn.normalize(self.protos.weight, dim=1))
+        self.protos.weight.copy_(F_nn.normalize(self.protos.weight, dim=-1))
 
     def loss(self, batch: Batch, run: Runner = call_network) -> torch.Tensor:
         """Swapped-prediction loss: online scores on ``s`` against Sinkhorn targets on ``s'``."""
         c = self.config
-        online = F_nn.normalize(run(self.projector, run(self.predictor, batch.obs)), dim=1)
-        log_p = F_nn.log_softmax(run(self.protos, online) / c.temperature, dim=1)
+        online = F_nn.normalize(run(self.projector, run(self.predictor, batch.obs)), dim=-1)
+        log_p = F_nn.log_softmax(run(self.protos, online) / c.temperature, dim=-1)
         with torch.no_grad():
-            target = F_nn.normalize(run(self.predictor_target, batch.next_obs), dim=1)
+            target = F_nn.normalize(run(self.predictor_target, batch.next_obs), dim=-1)
             q = sinkhorn_knopp(run(self.protos, target) / c.temperature, c.sinkhorn_iters)
-        return -(q * log_p).sum(dim=1).mean()
+        return -member_mean((q * log_p).sum(dim=-1), self.members)
 
     def enqueue(self, candidates: torch.Tensor) -> None:
-        """Write ``candidates`` (``(num_protos, pred_dim)``) at the pointer, FIFO, wrapping around."""
-        size, count, ptr = self.queue.shape[0], candidates.shape[0], self.queue_ptr
+        """Write ``candidates`` (``(num_protos, pred_dim)``) at the pointer, FIFO, wrapping around.
+        A group's queue ``(M, queue_size, pred_dim)`` takes ``(M, num_protos, pred_dim)``; the
+        members share the pointer (they enqueue in lockstep)."""
+        size, count, ptr = self.queue.shape[-2], candidates.shape[-2], self.queue_ptr
         first = min(count, size - ptr)
-        self.queue[ptr:ptr + first] = candidates[:first]
+        self.queue[..., ptr:ptr + first, :] = candidates[..., :first, :]
         if first < count:  # only when queue_size is not a multiple of num_protos
-            self.queue[:count - first] = candidates[first:]
+            self.queue[..., :count - first, :] = candidates[..., first:, :]
         self.queue_ptr = (ptr + count) % size
 
     # Interface ----------------------------------------------------------------------------------
@@ -148,8 +161,8 @@ class ProtoReward(IntrinsicReward):
         """Distance of ``z(s')`` to its topk-th nearest queue entry, ``(N, 1)``. Not pure: it draws
         from torch's RNG and pushes ``num_protos`` candidates into the queue first."""
         self.normalize_protos()  # the update's optimiser step moved the prototypes
-        z = F_nn.normalize(run(self.predictor, batch.next_obs), dim=1)
-        scores = run(self.protos, z).T  # (num_protos, N)
-        candidates = sample_one_per_row(F_nn.softmax(scores, dim=1), self.generator)  # one batch row per prototype
-        self.enqueue(z[candidates])
-        return nearest_distances(z, self.queue, self.config.topk)[:, -1:]
+        z = F_nn.normalize(run(self.predictor, batch.next_obs), dim=-1)
+        scores = run(self.protos, z).mT  # (num_protos, N)
+        candidates = sample_one_per_row(F_nn.softmax(scores, dim=-1), self.generator)  # one batch row per prototype
+        self.enqueue(take_rows(z, candidates))
+        return nearest_distances(z, self.queue, self.config.topk)[..., -1:]

@@ -15,6 +15,7 @@ from torch import nn
 from torch.nn import functional as F_nn
 
 from dvfb.nets import RunningMeanStd, call_network, freeze_, mlp, orthogonal_init_
+from dvfb.nets.members import member_mean, per_member
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 
@@ -36,7 +37,12 @@ class RNDNetworks(nn.Module):
         orthogonal_init_(self)
 
     def normalise(self, obs: torch.Tensor) -> torch.Tensor:
-        normed = F_nn.batch_norm(obs, None, None, training=True, eps=1e-5)
+        if obs.dim() == 3:  # a group (M, N, O): each member's batch statistics, as channels M*O
+            m, n, o = obs.shape
+            flat = obs.transpose(0, 1).reshape(n, m * o)
+            normed = F_nn.batch_norm(flat, None, None, training=True, eps=1e-5).reshape(n, m, o).transpose(0, 1)
+        else:
+            normed = F_nn.batch_norm(obs, None, None, training=True, eps=1e-5)
         return normed.clamp(-self.obs_clip, self.obs_clip)
 
     @staticmethod
@@ -70,14 +76,14 @@ class RNDReward(IntrinsicReward):
         return normed, target
 
     def loss(self, normed: torch.Tensor, target: torch.Tensor, run: Runner = call_network) -> torch.Tensor:
-        return RNDNetworks.error(run(self.networks.predictor, normed), target).mean()
+        return member_mean(RNDNetworks.error(run(self.networks.predictor, normed), target), self.members)
 
     @torch.no_grad()
     def reward(self, normed: torch.Tensor, target: torch.Tensor, run: Runner = call_network) -> torch.Tensor:
         """``e(x) / (sqrt(S_rnd) + 1e-8)`` after folding this batch into the statistics. ``(N, 1)``."""
         error = RNDNetworks.error(run(self.networks.predictor, normed), target)
         _mean, var = self.error_stats.update(error)
-        reward = (error / (var.sqrt().to(error.dtype) + 1e-8)).unsqueeze(-1)
+        reward = (error / (per_member(var, error).sqrt().to(error.dtype) + 1e-8)).unsqueeze(-1)
         return reward * self.scale if self.scale != 1.0 else reward
 
     def _scored(self, batch: Batch) -> torch.Tensor:
@@ -99,5 +105,5 @@ class RNDReward(IntrinsicReward):
         self.step(loss)
         metrics["rnd_loss"] = loss.detach()
         reward = self.reward(normed, target, run)
-        metrics["rnd_reward"] = reward.mean()
+        metrics["rnd_reward"] = member_mean(reward, self.members)
         return reward

@@ -29,12 +29,13 @@ from dataclasses import dataclass
 
 import torch
 from torch import nn
-from torch.nn import functional as F_nn
 
 from dvfb.config import param
 from dvfb.nets import adam, call_network, mlp, orthogonal_init_
+from dvfb.nets.members import member_mean, randn
 from dvfb.replay import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
+from dvfb.rewards.diayn import rowwise_cross_entropy
 from dvfb.skills import skill_index
 
 
@@ -92,20 +93,20 @@ class SMMReward(IntrinsicReward):
         """
         obs_z = torch.cat([batch.obs, batch.z], dim=-1)
         if noise is None:
-            noise = torch.randn(obs_z.shape[0], self.config.code_dim, device=obs_z.device, dtype=obs_z.dtype,
-                                generator=self.generator)
+            noise = randn((obs_z.shape[-2], self.config.code_dim), self.generator, obs_z.device, obs_z.dtype)
         features = run(self.vae["encoder"], obs_z)
         mean, log_var = run(self.vae["mean"], features), run(self.vae["log_var"], features)
         code = mean + noise * torch.exp(0.5 * log_var)
         squared_error = (run(self.vae["decoder"], code) - obs_z).pow(2)
         kl = -0.5 * (1.0 + log_var - mean.pow(2) - log_var.exp()).sum(dim=-1)
-        vae_loss = self.config.vae_beta * kl.mean() + squared_error.mean()
+        m = self.members
+        vae_loss = self.config.vae_beta * member_mean(kl, m) + member_mean(squared_error, m)
 
         logits = run(self.discriminator, batch.obs)
         target = skill_index(batch.z)
-        cross_entropy = F_nn.cross_entropy(logits, target, reduction="none")
-        accuracy = (logits.detach().argmax(dim=-1) == target).float().mean()
-        return {"vae_loss": vae_loss, "disc_loss": cross_entropy.mean(),
+        cross_entropy = rowwise_cross_entropy(logits, target)
+        accuracy = member_mean((logits.detach().argmax(dim=-1) == target).float(), m)
+        return {"vae_loss": vae_loss, "disc_loss": member_mean(cross_entropy, m),
                 "h_sz": squared_error.sum(dim=-1, keepdim=True), "h_zs": cross_entropy.unsqueeze(-1),
                 "accuracy": accuracy}
 
@@ -118,8 +119,8 @@ class SMMReward(IntrinsicReward):
     def _step(self, terms: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         self.step(terms["vae_loss"] + terms["disc_loss"])
         return {"smm_vae_loss": terms["vae_loss"].detach(), "smm_disc_loss": terms["disc_loss"].detach(),
-                "smm_disc_accuracy": terms["accuracy"], "smm_h_sz": terms["h_sz"].detach().mean(),
-                "smm_h_zs": terms["h_zs"].detach().mean()}
+                "smm_disc_accuracy": terms["accuracy"], "smm_h_sz": member_mean(terms["h_sz"].detach(), self.members),
+                "smm_h_zs": member_mean(terms["h_zs"].detach(), self.members)}
 
     def update(self, batch: Batch, run: Runner = call_network) -> dict[str, torch.Tensor]:
         return self._step(self.terms(batch, run))
