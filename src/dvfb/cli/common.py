@@ -93,6 +93,30 @@ def seed_value(text: str) -> int:
 seed_value.__name__ = "seed (an integer >= 0)"  # how argparse names the type in its one-line error
 
 
+def seed_list(text: str) -> list[int]:
+    """Seeds ``0,1,2`` (each an integer >= 0) of a group (docs/members.md)."""
+    seeds = [seed_value(part) for part in text.split(",")]
+    if not seeds:
+        raise ValueError(text)
+    return seeds
+
+
+seed_list.__name__ = "seeds (comma-separated integers >= 0)"
+
+SEED_PLACEHOLDER = "{seed}"
+
+
+def member_run_dirs(config, run_dir: str | None, seeds: list[int]) -> list[Path]:
+    """The run directory of each member of a group: ``--run-dir`` with ``{seed}`` replaced by the
+    member's seed, or each seed's default run directory."""
+    if run_dir is None:
+        return [default_run_dir(dataclasses.replace(config, seed=seed)) for seed in seeds]
+    if SEED_PLACEHOLDER not in run_dir:
+        raise ConfigError(f"--run-dir {run_dir} with --seeds needs {SEED_PLACEHOLDER} in it (one run directory "
+                          f"per member, e.g. runs/fb_walker_s{SEED_PLACEHOLDER})")
+    return [Path(run_dir.replace(SEED_PLACEHOLDER, str(seed))) for seed in seeds]
+
+
 def progress_flag(p: argparse.ArgumentParser) -> None:
     """--progress / --no-progress of the commands with a progress bar."""
     p.add_argument("--progress", dest="progress", action="store_true", default=None,

@@ -6,13 +6,20 @@ import argparse
 import sys
 from pathlib import Path
 
-from dvfb.cli.common import DEFAULT_PRESET, Formatter, default_run_dir, pretrain_config, progress_flag
+from dvfb.cli.common import (DEFAULT_PRESET, Formatter, default_run_dir, member_run_dirs, pretrain_config,
+                             progress_flag, seed_list)
 from dvfb.config import add_arguments
 
 def cmd_pretrain(args: argparse.Namespace) -> int:
-    from dvfb.workflows.pretrain import pretrain
+    from dvfb.workflows.pretrain import pretrain, pretrain_group
 
     config = pretrain_config(args)
+    if args.seeds is not None:
+        runs = pretrain_group(config, args.seeds, member_run_dirs(config, args.run_dir, args.seeds),
+                              resume=args.resume, overwrite=args.overwrite, progress=args.progress, command=sys.argv)
+        for run in runs:
+            print(f"pre-training finished: {run.path}")
+        return 0
     run_dir = Path(args.run_dir) if args.run_dir else default_run_dir(config)
     run = pretrain(config, run_dir, resume=args.resume, overwrite=args.overwrite,
                    progress=args.progress, command=sys.argv)
@@ -32,6 +39,10 @@ def register(sub, agent: str) -> None:
                     "sections depend on the method: `dvfb pretrain --agent NAME --help` shows its flags.")
     p.add_argument("--preset", default=DEFAULT_PRESET, choices=PRESETS, help="base configuration (default: %(default)s)")
     p.add_argument("--run-dir", default=None, help="run directory (default: runs/<agent>_<domain>_<preset>_s<seed>)")
+    p.add_argument("--seeds", type=seed_list, default=None,
+                   help="train one member per seed in lockstep in this process, each in its own run directory "
+                        "(--run-dir with {seed} in it, default: each seed's default); --seed is then unused "
+                        "(docs/members.md)")
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir from its latest checkpoint")
     p.add_argument("--overwrite", action="store_true", help="replace an existing run directory")
     progress_flag(p)

@@ -9,26 +9,33 @@ from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_
 
 def cmd_zeroshot(args: argparse.Namespace) -> int:
     from dvfb.workflows.snapshots import open_pretrained_run
-    from dvfb.workflows.zeroshot import zeroshot
+    from dvfb.workflows.zeroshot import zeroshot, zeroshot_group
 
-    _run, config = open_pretrained_run(args.run)
+    group = len(args.run) > 1
+    _run, config = open_pretrained_run(args.run[0])
+    for other in args.run[1:]:
+        open_pretrained_run(other)  # names a missing or broken run before any work
     from dvfb.workflows.resources import evaluation_tasks
 
     # Every task is checked before the first is run: a bad second name must not leave a first result.
     tasks = evaluation_tasks(config, args.task)
     inference = protocol_overrides(args, "inference")
     goal = parse_goal(args.goal) if args.goal else None
+    options = dict(snapshot=args.snapshot, inference=inference, seed=args.seed, skill_source=args.skill_source,
+                   reward_fn=args.reward_fn, goal=goal, overwrite=args.overwrite, progress=args.progress,
+                   dataset=args.dataset)
     rows = []
     for task in tasks:
-        result = zeroshot(args.run, task, snapshot=args.snapshot, inference=inference, seed=args.seed,
-                          skill_source=args.skill_source, reward_fn=args.reward_fn, goal=goal,
-                          overwrite=args.overwrite, progress=args.progress, dataset=args.dataset)
-        rows.append((task, result["mean_return"], result["std_return"], result["eval_episodes"],
-                     result.get("success_rate")))
-    with_success = any(row[4] is not None for row in rows)
-    print(f"{'task':<36} {'return':>9} {'std':>8} {'episodes':>9}" + (f" {'success':>8}" if with_success else ""))
-    for task, mean, std, n, success in rows:
-        print(f"{task:<36} {mean:9.1f} {std:8.1f} {n:9d}" + (f" {success:8.2f}" if success is not None else ""))
+        results = zeroshot_group(args.run, task, **options) if group else [zeroshot(args.run[0], task, **options)]
+        for run, result in zip(args.run, results):
+            rows.append((task, run, result["mean_return"], result["std_return"], result["eval_episodes"],
+                         result.get("success_rate")))
+    with_success = any(row[5] is not None for row in rows)
+    print(f"{'task':<36} " + (f"{'run':<32} " if group else "") + f"{'return':>9} {'std':>8} {'episodes':>9}"
+          + (f" {'success':>8}" if with_success else ""))
+    for task, run, mean, std, n, success in rows:
+        print(f"{task:<36} " + (f"{run:<32} " if group else "") + f"{mean:9.1f} {std:8.1f} {n:9d}"
+              + (f" {success:8.2f}" if success is not None else ""))
     return 0
 
 
@@ -39,7 +46,9 @@ def register(sub, agent: str) -> None:
                                    "a goal), the skill-discovery methods select the best prior skill over the "
                                    "same steps, methods without skills use their one policy; then mean-action "
                                    "evaluation episodes. Defaults come from the run's config.")
-    p.add_argument("run", help="pre-training run directory")
+    p.add_argument("run", nargs="+", help="pre-training run directory; several: the members of a group (one method "
+                                          "and configuration, seeds aside), evaluated together with batched actor "
+                                          "forward passes (docs/members.md)")
     p.add_argument("--task", nargs="+", required=True, help="task name(s) of the run's domain, or 'all'")
     add_snapshot_and_seed(p, "task seed")
     p.add_argument("--skill-source", "--z-source", dest="skill_source", default="rewards",

@@ -71,18 +71,10 @@ class RunDir:
     def results_dir(self) -> Path:
         return self.path / "results"
 
-    @classmethod
-    def create(cls, path: str | os.PathLike, config: Any, overwrite: bool = False,
-               command: Sequence[str] | None = None) -> RunDir:
-        """Make a new run directory holding ``config.json`` and ``meta.json``.
-
-        An existing non-empty directory is an error unless ``overwrite``; then its contents are
-        removed first, but only if it is a run directory (has config.json or meta.json), so that a
-        mistyped path cannot wipe unrelated files. ``command`` is the command line to record
-        (e.g. ``sys.argv``).
-        """
-        if not dataclasses.is_dataclass(config) or isinstance(config, type):
-            raise TypeError(f"config must be a dataclass instance, got {type(config).__name__}")
+    @staticmethod
+    def check_new(path: Path, overwrite: bool) -> bool:
+        """Refuse what :meth:`create` would refuse, touching nothing; True if ``path`` holds a run
+        that ``overwrite`` replaces (a group checks all its members' directories first)."""
         path = Path(path)
         if path.exists() or path.is_symlink():
             if not path.is_dir():
@@ -99,17 +91,34 @@ class RunDir:
                         f"(no {CONFIG_FILE} or {META_FILE}); remove it yourself or choose another "
                         "run name"
                     )
-                try:
-                    # Everything but the lock file, which the overwriting process holds.
-                    for child in path.iterdir():
-                        if child.name == LOCK_FILE:
-                            continue
-                        if child.is_dir() and not child.is_symlink():
-                            shutil.rmtree(child)
-                        else:
-                            child.unlink()
-                except OSError as exc:
-                    raise RunDirError(f"cannot remove {path} to overwrite it: {exc}") from exc
+                return True
+        return False
+
+    @classmethod
+    def create(cls, path: str | os.PathLike, config: Any, overwrite: bool = False,
+               command: Sequence[str] | None = None) -> RunDir:
+        """Make a new run directory holding ``config.json`` and ``meta.json``.
+
+        An existing non-empty directory is an error unless ``overwrite``; then its contents are
+        removed first, but only if it is a run directory (has config.json or meta.json), so that a
+        mistyped path cannot wipe unrelated files. ``command`` is the command line to record
+        (e.g. ``sys.argv``).
+        """
+        if not dataclasses.is_dataclass(config) or isinstance(config, type):
+            raise TypeError(f"config must be a dataclass instance, got {type(config).__name__}")
+        path = Path(path)
+        if cls.check_new(path, overwrite):
+            try:
+                # Everything but the lock file, which the overwriting process holds.
+                for child in path.iterdir():
+                    if child.name == LOCK_FILE:
+                        continue
+                    if child.is_dir() and not child.is_symlink():
+                        shutil.rmtree(child)
+                    else:
+                        child.unlink()
+            except OSError as exc:
+                raise RunDirError(f"cannot remove {path} to overwrite it: {exc}") from exc
         try:
             path.mkdir(parents=True, exist_ok=True)
             save_json(config, path / CONFIG_FILE)

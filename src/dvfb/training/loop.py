@@ -74,6 +74,17 @@ class OnlineCollector:
         self.action: np.ndarray | None = None
 
     def prepare(self, step: int) -> None:
+        if self.begin(step):
+            self.action = self.uniform_action()
+        else:
+            self.action = self.agent.act(self.state.obs, self.state.skill, explore=True)
+
+    def uniform_action(self) -> np.ndarray:
+        return self.rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
+
+    def begin(self, step: int) -> bool:
+        """Start an episode when one ended and redraw the skill when due; True if the step acts
+        uniformly at random (the action is then :meth:`uniform_action`, else the policy's)."""
         s = self.state
         starting = s.episode_start
         if starting:
@@ -88,10 +99,7 @@ class OnlineCollector:
                 self.replay.start_episode(s.obs, physics=self.physics())
             s.episode_return, s.episode_start = 0.0, False
         s.set_skill(self.next_skill(step, starting, s.skill))
-        if self.uniform(step):
-            self.action = self.rng.uniform(-1.0, 1.0, self.action_dim).astype(np.float32)
-        else:
-            self.action = self.agent.act(s.obs, s.skill, explore=True)
+        return self.uniform(step)
 
     def advance(self) -> bool:
         """Step the environment with the prepared action; True at an episode end."""
@@ -126,6 +134,63 @@ class DatasetSource:
 
     def advance(self) -> bool:
         return True
+
+
+class GroupState:
+    """Where a group's members stand together: at an episode start only when every member is."""
+
+    def __init__(self, sources: list):
+        self.sources = sources
+
+    @property
+    def episode_start(self) -> bool:
+        return all(source.state.episode_start for source in self.sources)
+
+
+class GroupSource:
+    """The data sources of a group's members (docs/members.md), stepped in lockstep.
+
+    Each member keeps its own environment, replay, random streams and skill rule (its
+    :class:`OnlineCollector`, or a :class:`DatasetSource`); the policy's actions of all members
+    come from one batched forward of the stacked actor, ``act(obs (M, O), skills) -> (M, U)``.
+    ``members()`` lists the live members' sources in stack order (a stopped member leaves it);
+    ``on_action_fault(source, message)`` stops a member whose policy produced a non-finite action;
+    ``after_episode(source, step)`` runs for each member whose episode ended.
+    """
+
+    def __init__(self, members: Callable[[], list], act: Callable, on_action_fault: Callable,
+                 after_episode: Callable | None = None):
+        self.members, self.act = members, act
+        self.on_action_fault, self.after_episode = on_action_fault, after_episode
+        self.action = None  # the loop's own action check is per member here
+        self.state = GroupState([])
+
+    def prepare(self, step: int) -> None:
+        sources = self.members()
+        online = [s for s in sources if isinstance(s, OnlineCollector)]
+        acting = [s for s in online if not s.begin(step)]
+        for s in online:
+            if s not in acting:
+                s.action = s.uniform_action()
+        if acting:
+            skills = [s.state.skill for s in acting]
+            skill = None if skills[0] is None else torch.stack(skills)
+            if len(acting) != len(online):  # the uniform phase is the same steps for every member
+                raise RuntimeError("the members of a group left the uniform phase at different steps")
+            actions = self.act(np.stack([s.state.obs for s in acting]), skill)
+            for s, action in zip(acting, actions):
+                s.action = action
+            for s in acting:
+                if not np.isfinite(s.action).all():
+                    self.on_action_fault(s, f"the policy produced a non-finite action at step {step}")
+
+    def advance(self) -> bool:
+        sources = self.members()
+        for source in sources:
+            if source.advance() and self.after_episode is not None and isinstance(source, OnlineCollector):
+                self.after_episode(source)
+        self.state = GroupState(sources)
+        return self.state.episode_start
 
 
 def run(step: int, total: int, source: OnlineCollector | DatasetSource, update: Callable[[], dict], learn_from: int,

@@ -53,15 +53,80 @@ class MetricWindow:
         table = torch.stack([torch.stack([row[k].float().reshape(()) for k in keys]) for row in self.rows])
         values = table.cpu().numpy()
         steps, self.steps, self.rows = self.steps, [], []
-        bad = ~np.isfinite(values)
-        if bad.any():
-            row, col = np.argwhere(bad)[0]
-            bad_keys = [keys[c] for c in np.flatnonzero(bad[row])]
-            hint = self.hint(bad_keys) if self.hint is not None else ""
-            hint = f"; {hint}" if hint else ""
-            raise NonFiniteLossError(f"non-finite value {keys[col]}={values[row, col]} at step {steps[row]} "
-                                     f"(non-finite there: {', '.join(bad_keys)}){hint}")
+        message = nonfinite_message(keys, values, steps, self.hint)
+        if message is not None:
+            raise NonFiniteLossError(message)
         return dict(zip(keys, values.mean(0).tolist()))
+
+
+def nonfinite_message(keys: list[str], values: np.ndarray, steps: list[int], hint) -> str | None:
+    """The one line naming the first update and loss of a ``(updates, metrics)`` table that went
+    NaN/inf (with the method's hint), or None when every value is finite."""
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return None
+    row, col = np.argwhere(bad)[0]
+    bad_keys = [keys[c] for c in np.flatnonzero(bad[row])]
+    hint = hint(bad_keys) if hint is not None else ""
+    hint = f"; {hint}" if hint else ""
+    return (f"non-finite value {keys[col]}={values[row, col]} at step {steps[row]} "
+            f"(non-finite there: {', '.join(bad_keys)}){hint}")
+
+
+class GroupWindow:
+    """A group's metric window (docs/members.md): per-update metrics of shape ``(M,)``, one entry
+    per live member, read back in one host sync per window for all members.
+
+    A member whose metrics went non-finite is reported to ``on_fault(member, message)`` (which
+    stops it) and the others go on; :meth:`member_window` gives each member a window of its own
+    to read its means from. ``members()`` lists the live members in stack order.
+    """
+
+    def __init__(self, members: Callable[[], list], on_fault: Callable[[object, str], None],
+                 hint: Callable[[list[str]], str] | None = None) -> None:
+        self.members, self.on_fault, self.hint = members, on_fault, hint
+        self.steps: list[int] = []
+        self.rows: list[dict[str, torch.Tensor]] = []
+        self.pending: dict[int, dict[str, float]] = {}
+
+    def add(self, step: int, metrics: dict[str, torch.Tensor]) -> None:
+        self.steps.append(step)
+        self.rows.append(metrics)
+
+    def flush(self) -> dict[str, float]:
+        if not self.rows:
+            return {}
+        keys = list(self.rows[0])
+        table = torch.stack([torch.stack([row[k].float().reshape(-1) for k in keys]) for row in self.rows])
+        values = table.cpu().numpy()  # (updates, metrics, members)
+        steps, self.steps, self.rows = self.steps, [], []
+        faults = []
+        for i, member in enumerate(self.members()):
+            message = nonfinite_message(keys, values[:, :, i], steps, self.hint)
+            if message is None:
+                self.pending[id(member)] = dict(zip(keys, values[:, :, i].mean(0).tolist()))
+            else:
+                faults.append((member, message))
+        for member, message in faults:
+            self.on_fault(member, message)
+        return {}
+
+    def member_window(self, member) -> MemberWindow:
+        return MemberWindow(self, member)
+
+
+class MemberWindow:
+    """One member's view of a :class:`GroupWindow`: :meth:`flush` gives its own window means."""
+
+    def __init__(self, group: GroupWindow, member) -> None:
+        self.group, self.member = group, member
+
+    def add(self, step: int, metrics: dict[str, torch.Tensor]) -> None:
+        raise RuntimeError("a group's metrics go to its GroupWindow")
+
+    def flush(self) -> dict[str, float]:
+        self.group.flush()
+        return self.group.pending.pop(id(self.member), {})
 
 
 def check_action(action: np.ndarray, step: int, window: MetricWindow) -> None:

@@ -58,3 +58,31 @@ def evaluate_policy(agent: Agent, env, z: torch.Tensor | None, episodes: int, pr
     that have none (``z = None``). ``progress.update(1)`` is called per step when given (a
     :class:`~dvfb.training.monitor.Progress`)."""
     return run_episodes(env, lambda obs: agent.act(obs, z, explore=False), episodes, progress)
+
+
+def evaluate_group(group: Agent, envs: list, skills: torch.Tensor | None, episodes: int,
+                   progress=None) -> list[Evaluation]:
+    """:func:`evaluate_policy` of every member of a stacked group (docs/members.md): member k's
+    episodes in ``envs[k]`` with its skill ``skills[k]``, all members in lockstep, their mean actions
+    from one batched forward per step."""
+    m = len(envs)
+    returns = [[] for _ in range(m)]
+    successes = [[] for _ in range(m)]
+    for _ in range(episodes):
+        obs = [env.reset()[0] for env in envs]
+        totals, done, infos = [0.0] * m, [False] * m, [{}] * m
+        while not all(done):
+            actions = group.act_members(np.stack(obs), skills, explore=False)
+            for k, env in enumerate(envs):
+                if done[k]:
+                    continue
+                obs[k], reward, terminated, truncated, infos[k] = env.step(actions[k])
+                totals[k] += reward
+                done[k] = terminated or truncated
+                if progress is not None:
+                    progress.update(1)
+        for k in range(m):
+            returns[k].append(totals[k])
+            if "success" in infos[k]:
+                successes[k].append(bool(infos[k]["success"]))
+    return [Evaluation(r, s if len(s) == len(r) and s else None) for r, s in zip(returns, successes)]

@@ -23,12 +23,14 @@ def snapshot_name(frames: int) -> str:
     return f"{SNAPSHOT_PREFIX}{frames}"
 
 
-def snapshot_state(agent: Agent, config: PretrainConfig, frames: int) -> dict:
+def snapshot_state(agent: Agent, config: PretrainConfig, frames: int, modules: dict | None = None) -> dict:
     """A self-describing snapshot: the agent's name, its run config, the dims, the format version
-    and the state of its pre-trained modules."""
+    and the state of its pre-trained modules (``modules``: their state dicts, a group member's)."""
+    if modules is None:
+        modules = {k: m.state_dict() for k, m in agent.pretrained_modules().items()}
     return {"kind": "pretrained_agent", "format": SNAPSHOT_FORMAT, "agent": agent.name, "domain": config.domain,
             "config": to_dict(config), "frames": frames, "obs_dim": agent.obs_dim, "action_dim": agent.action_dim,
-            "modules": {k: m.state_dict() for k, m in agent.pretrained_modules().items()}}
+            "modules": modules}
 
 
 def available_snapshots(run: RunDir) -> list[int]:

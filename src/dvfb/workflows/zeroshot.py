@@ -39,7 +39,8 @@ from dvfb.workflows.resources import evaluation_tasks
 from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 from dvfb.training.seeding import run_generator
 from dvfb.workflows.config import PretrainConfig
-from dvfb.workflows.evaluate import Evaluation, evaluate_policy, run_episodes
+from dvfb.nets.members import stack_agents
+from dvfb.workflows.evaluate import Evaluation, evaluate_group, evaluate_policy, run_episodes
 
 Z_SOURCES = SKILL_SOURCES
 
@@ -178,6 +179,85 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out, result)
     return result
+
+
+def zeroshot_group(run_paths: list[str | Path], task: str, *, snapshot: int | None = None,
+                   inference: dict | None = None, seed: int | None = None, skill_source: str = "rewards",
+                   reward_fn: str | Callable | None = None, goal: np.ndarray | None = None, overwrite: bool = False,
+                   device: str | None = None, progress: bool | None = None,
+                   dataset: str | Path | None = None) -> list[dict]:
+    """:func:`zeroshot` of every member of a group (docs/members.md) in one pass: each member's
+    skill by its own protocol and random streams, as its separate zero-shot finds it; then the
+    evaluation episodes of all members in lockstep, their actions from one batched forward of the
+    stacked actors. Each member's result goes to its own run, in :func:`zeroshot`'s format.
+
+    The runs must be one method with one configuration (seeds aside) and have the snapshot.
+    """
+    if not run_paths:
+        raise ConfigError("a group zero-shot needs at least one run")
+    members = []
+    for run_path in run_paths:
+        run, config = open_pretrained_run(run_path)
+        protocol = run_protocol(config, inference)
+        protocol.check_source(skill_source, config.agent)
+        evaluation_tasks(config, [task])
+        members.append((run, config, protocol))
+    first = members[0][1]
+    from dvfb.workflows.config import agent_sections
+    for run, config, _protocol in members[1:]:
+        if config.agent != first.agent or agent_sections(config) != agent_sections(first) \
+                or config.domain != first.domain:
+            raise ConfigError(f"{run.path} is not the same method and configuration as {members[0][0].path}: "
+                              "the members of a group differ only in their seeds")
+    loaded = []
+    for run, config, protocol in members:
+        agent, snap = load_pretrained_agent(run, config, snapshot, device)
+        out = result_path(run, task, snap, max(config.frames, snap))
+        if out.exists() and not overwrite:
+            raise RunDirError(f"{out} exists; pass --overwrite to replace it")
+        if goal is not None and skill_source == "goal":
+            check_goal(goal, agent.goal_widths(), config.domain)
+        check_writable(out.parent if out.parent.exists() else run.path)
+        loaded.append((agent, snap, out))
+    if len({snap for _a, snap, _o in loaded}) != 1:
+        raise ConfigError("the members' snapshots are of different frames; pass --snapshot")
+    started = time.time()
+    episode_length = envs.TASKS[task].episode_length
+    protocol0 = members[0][2]
+    bar = Progress(len(members) * (protocol0.task_steps(skill_source) + protocol0.eval_episodes * episode_length),
+                   0, f"zeroshot {task} ({len(members)} members)", progress, unit="step")
+    skills, infos, seeds, eval_envs = [], [], [], []
+    try:
+        for (run, config, protocol), (agent, _snap, _out) in zip(members, loaded):
+            member_seed = config.seed if seed is None else seed
+            rng = seed_everything(member_seed)
+            agent.use_generator(run_generator(member_seed, agent.device))
+            z, info = task_skill(agent, run, config, task, protocol, rng, member_seed, skill_source, reward_fn, goal,
+                                 progress=bar, dataset=dataset)
+            skills.append(z)
+            infos.append(info)
+            seeds.append(member_seed)
+            eval_envs.append(envs.make(task, seed=member_seed))
+        group = stack_agents([agent for agent, _snap, _out in loaded])
+        evaluations = evaluate_group(group, eval_envs, None if skills[0] is None else torch.stack(skills),
+                                     protocol0.eval_episodes, progress=bar)
+    finally:
+        bar.close()
+    results = []
+    for (run, config, protocol), (agent, snap, out), z, info, member_seed, evaluation in zip(
+            members, loaded, skills, infos, seeds, evaluations):
+        result = {
+            "task": task, "domain": config.domain, "agent": config.agent, "preset": config.preset,
+            "pretrain_seed": config.seed, "seed": member_seed, "snapshot_frames": snap, "protocol": protocol.name,
+            "skill_source": skill_source if agent.skill.has_skill else "none",
+            "inference": to_dict(protocol.config), "inference_info": info, "z": None if z is None else z.cpu().tolist(),
+            **evaluation.summary(), "eval_episodes": len(evaluation.returns), "wall_clock_s": time.time() - started,
+            "group": [str(r.path) for r, _c, _p in members],
+        }
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(out, result)
+        results.append(result)
+    return results
 
 
 def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, protocol: ZeroShotProtocol,

@@ -1,0 +1,175 @@
+"""Pre-training a group (docs/members.md): N members in one process, each in an ordinary run
+directory; exact resume of the whole group; a member that goes non-finite stops alone; and the
+errors of a bad --seeds command."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from dvfb.errors import NonFiniteLossError
+from dvfb.nets.members import drop_members, member_training_state, stack_agents
+from dvfb.replay import Batch
+from dvfb.runs import RunDir, load_checkpoint, load_snapshot, save_checkpoint
+from dvfb.training.monitor import GroupWindow
+from dvfb.workflows.pretrain import pretrain, pretrain_group
+from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
+from tiny import filled_replay, tiny_run_config
+
+SEEDS = [0, 1]
+
+
+def _snapshot_modules(path, frames):
+    return load_snapshot(RunDir(path), f"snapshot_{frames}")["modules"]
+
+
+def _replay_rows(path):
+    return load_checkpoint(RunDir(path), None)["replay"]["rows"]
+
+
+def test_group_members_are_ordinary_runs_close_to_their_separate_runs(tmp_path):
+    config = tiny_run_config("dvfb", frames=1000, seed_frames=960)
+    paths = [tmp_path / f"group_s{seed}" for seed in SEEDS]
+    runs = pretrain_group(config, SEEDS, paths, progress=False)
+    assert [r.path for r in runs] == paths
+    separate = tmp_path / "separate_s1"
+    pretrain(dataclasses.replace(config, seed=1), separate, progress=False)
+    # An ordinary run: its config has its own seed and its snapshot loads through the registry.
+    run, member_config = open_pretrained_run(paths[1])
+    assert member_config.seed == 1
+    agent, frames = load_pretrained_agent(run, member_config)
+    assert frames == 1000 and agent.members == 0
+    # The uniform phase is the same data bit for bit; the policy's steps and 10 updates agree to
+    # float32 rounding (the stacked products round differently from the separate run's).
+    grouped, alone = _replay_rows(paths[1]), _replay_rows(separate)
+    seed_rows = config.seed_frames  # row t holds s_t and the action taken in it
+    assert torch.equal(grouped[:seed_rows], alone[:seed_rows])
+    torch.testing.assert_close(grouped, alone, rtol=1e-3, atol=1e-3)
+    a, b = _snapshot_modules(paths[1], 1000), _snapshot_modules(separate, 1000)
+    for key in b:
+        for name, tensor in b[key].items():
+            torch.testing.assert_close(a[key][name], tensor, rtol=1e-3, atol=1e-3)
+    # Member 0 is not member 1.
+    assert not torch.equal(_replay_rows(paths[0])[:seed_rows], grouped[:seed_rows])
+
+
+@pytest.mark.parametrize("agent_name", ["dvfb", "diayn", "rnd"])
+def test_group_zeroshot_equals_each_members_own(tmp_path, agent_name):
+    from dvfb.workflows.zeroshot import zeroshot, zeroshot_group
+
+    config = tiny_run_config(agent_name, frames=1000)
+    paths = [tmp_path / f"z_s{s}" for s in SEEDS]
+    pretrain_group(config, SEEDS, paths, progress=False)
+    task = "point_mass_maze_reach_top_left"
+    fast = {"steps": 300, "random_action_steps": 100, "samples": 300, "eval_episodes": 2}
+    if agent_name == "diayn":
+        fast = {"steps": 1000, "eval_episodes": 2}
+    elif agent_name == "rnd":
+        fast = {"eval_episodes": 2}
+    alone = [zeroshot(p, task, inference=fast, progress=False) for p in paths]
+    together = zeroshot_group(paths, task, inference=fast, overwrite=True, progress=False)
+    for a, b in zip(alone, together):
+        assert a["z"] == b["z"] and a["seed"] == b["seed"]  # each member's own inference, bit for bit
+        # The actions come from the stacked actor (float32 rounding apart from the separate one's).
+        assert b["returns"] == pytest.approx(a["returns"], rel=1e-3, abs=1e-2)
+        assert b["group"] == [str(p) for p in paths]
+
+
+def test_group_resume_equals_uninterrupted_group(tmp_path):
+    config = tiny_run_config("fb", frames=2000)
+    full = [tmp_path / f"full_s{s}" for s in SEEDS]
+    split = [tmp_path / f"split_s{s}" for s in SEEDS]
+    pretrain_group(config, SEEDS, full, progress=False)
+    pretrain_group(dataclasses.replace(config, frames=1000), SEEDS, split, progress=False)
+    pretrain_group(config, SEEDS, split, resume=True, progress=False)
+    for a_path, b_path in zip(full, split):
+        a, b = _snapshot_modules(a_path, 2000), _snapshot_modules(b_path, 2000)
+        for key in a:
+            for name, tensor in a[key].items():
+                assert torch.equal(tensor, b[key][name]), (a_path.name, key, name)
+
+
+def test_a_non_finite_member_stops_alone(tmp_path, capsys):
+    config = tiny_run_config("fb", frames=1000)
+    paths = [tmp_path / f"m_s{s}" for s in SEEDS]
+    pretrain_group(config, SEEDS, paths, progress=False)
+    # Poison member 1's checkpoint (a real file): its networks hold NaN when the group resumes.
+    run = RunDir(paths[1])
+    state = load_checkpoint(run, None)
+    for name, tensor in state["agent_state"]["modules"].items():
+        if name.startswith("forward_map.") and tensor.is_floating_point():
+            tensor.fill_(float("nan"))
+    save_checkpoint(run, state, f"resume_{state['step']}")
+    with pytest.raises(NonFiniteLossError, match=r"1 of 2 members stopped.*seed 1") as failure:
+        pretrain_group(dataclasses.replace(config, frames=1500), SEEDS, paths, resume=True, progress=False)
+    assert str(paths[1]) in str(failure.value) and "\n" not in str(failure.value)
+    assert "member seed 1" in capsys.readouterr().err
+    # Member 0 finished; member 1 kept its intact checkpoint and wrote no snapshot after it.
+    assert (paths[0] / "pretrain_summary.json").is_file()
+    assert (paths[0] / "snapshots" / "snapshot_1500.pt").is_file()
+    assert not (paths[1] / "snapshots" / "snapshot_1500.pt").exists()
+
+
+def test_group_window_and_drop_keep_the_healthy_members_exact():
+    from test_members import _members
+
+    agents, twins, replays = _members("fb", torch.float32)
+    group = stack_agents(agents)
+    with torch.no_grad():
+        group.forward_map.heads.second_weight[1].fill_(float("nan"))
+    faults = []
+    window = GroupWindow(lambda: [0, 1, 2], lambda member, message: faults.append((member, message)))
+    needs = group.replay_needs()
+    batches = [needs.sample(r, torch.Generator().manual_seed(k)) for k, r in enumerate(replays)]
+    window.add(7, group.update(Batch.stack(batches)))
+    window.flush()
+    assert [m for m, _ in faults] == [1] and "at step 7" in faults[0][1]
+    for k in (0, 2):
+        twins[k].update(batches[k])
+        state = member_training_state(group, k)["modules"]
+        for name, tensor in twins[k].state_dict().items():
+            torch.testing.assert_close(state[name], tensor, rtol=1e-4, atol=1e-5)
+    drop_members(group, [0, 2])
+    assert group.members == 2 and group.forward_map.heads.second_weight.shape[0] == 2
+    batches = [needs.sample(replays[k], torch.Generator().manual_seed(10 + k)) for k in (0, 2)]
+    metrics = group.update(Batch.stack(batches))
+    assert all(torch.isfinite(v).all() for v in metrics.values())
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "dvfb", "pretrain", "--agent", "fb", "--domain", "point_mass_maze",
+                           "--frames", "600", "--seed-frames", "500", *args], capture_output=True, text=True)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seeds", "0,1", "--run-dir", "{tmp}/plain"], "needs {seed} in it"),
+    (["--seeds", "0,0", "--run-dir", "{tmp}/r_{seed}"], "lists a seed twice"),
+    (["--seeds", "0,x", "--run-dir", "{tmp}/r_{seed}"], "invalid seeds"),
+])
+def test_bad_seeds_are_one_line_and_create_nothing(tmp_path, args, message):
+    done = _cli(*[a.replace("{tmp}", str(tmp_path)) for a in args])
+    assert done.returncode != 0
+    # argparse's own type errors come after its usage lines; the error itself is one line.
+    assert message in done.stderr.strip().splitlines()[-1], done.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_group_refuses_an_existing_member_directory_before_creating_any(tmp_path):
+    pretrain(tiny_run_config("fb", frames=600, seed=1), tmp_path / "r_1", progress=False)
+    before = sorted(p.name for p in (tmp_path / "r_1").iterdir())
+    done = _cli("--seeds", "0,1", "--run-dir", str(tmp_path / "r_{seed}"))
+    assert done.returncode != 0 and "already exists" in done.stderr
+    assert not (tmp_path / "r_0").exists()
+    assert sorted(p.name for p in (tmp_path / "r_1").iterdir()) == before
+
+
+def test_copy_of_group_is_not_needed_for_twins():
+    # A deep copy of an ordinary agent stays ordinary (what the equivalence tests rely on).
+    from dvfb.agents import make_agent
+    agent = make_agent("fb", 4, 2, tiny_run_config("fb"), "cpu")
+    assert copy.deepcopy(agent).members == 0
