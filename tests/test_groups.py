@@ -12,6 +12,7 @@ import sys
 import pytest
 import torch
 
+from dvfb import envs
 from dvfb.errors import NonFiniteLossError
 from dvfb.nets.members import drop_members, member_training_state, stack_agents
 from dvfb.replay import Batch
@@ -173,3 +174,22 @@ def test_copy_of_group_is_not_needed_for_twins():
     from dvfb.agents import make_agent
     agent = make_agent("fb", 4, 2, tiny_run_config("fb"), "cpu")
     assert copy.deepcopy(agent).members == 0
+
+
+def test_a_group_that_does_not_fit_is_refused_before_anything_is_built(tmp_path):
+    from dvfb.replay import ReplayBuffer
+    from dvfb.workflows.resources import available_memory_bytes
+
+    # A replay that fits once but not twice: the estimate covers every member.
+    available = available_memory_bytes()
+    assert available is not None
+    env = envs.make("point_mass_maze_reach_top_left")
+    obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    per_transition = ReplayBuffer.estimate_nbytes(1_000_000, obs_dim, action_dim, 10, 1000) / 1_000_000
+    capacity = int(0.6 * available / per_transition)
+    done = _cli("--seeds", "0,1", "--run-dir", str(tmp_path / "r_{seed}"), "--replay-capacity", str(capacity),
+                "--fb.z-dim", "10")
+    assert done.returncode != 0
+    last = done.stderr.strip().splitlines()[-1]
+    assert "(2 members)" in last and "needs about" in last, done.stderr
+    assert list(tmp_path.iterdir()) == []

@@ -302,6 +302,24 @@ def test_slurm_sweep_equals_local_and_reports_over_seeds(tmp_path, slurm_cluster
     assert [row.split()[:2] for row in rows] == [[cell, "done"] for cell in cells] and "4 done (4 cells" in status
 
 
+def test_a_cells_seeds_run_as_one_group_job_on_slurm_as_locally(tmp_path, slurm_cluster, capsys):  # noqa: F811
+    # --seeds-per-job 2: each cell's two seeds pre-train in one process and one SLURM job
+    # (dvfb pretrain --seeds, docs/members.md); each seed still has its own run and zero-shot unit.
+    group = ["--seeds-per-job", "2"]
+    local_dir, slurm_dir = tmp_path / "local", tmp_path / "slurm"
+    assert main(sweep_args(local_dir, "local", agents=("fb",), extra=["--workers", "2", *group])) == 0
+    assert main(sweep_args(slurm_dir, "slurm", agents=("fb",), extra=group)) == 0
+    assert "slurm: 3 job(s) submitted" in capsys.readouterr().out  # one pre-training, two zero-shots
+    jobs = sweep_jobs(slurm_dir)
+    assert "fb_walker_s0/pretrain" in jobs and "fb_walker_s1/pretrain" not in jobs
+    log = (slurm_dir / "logs" / "fb_walker_s0" / "pretrain.log").read_text()
+    assert "--seeds 0,1" in log and str(slurm_dir / "runs" / "fb_walker_s{seed}") in log
+    for cell in ("fb_walker_s0", "fb_walker_s1"):
+        assert_same_results(local_dir, slurm_dir, cell)
+    assert main(["sweep", "status", str(slurm_dir)]) == 0
+    assert "2 done (2 cells" in capsys.readouterr().out
+
+
 def test_requeued_job_resumes_and_ends_equal_to_an_uninterrupted_run(tmp_path, slurm_cluster):  # noqa: F811
     one_cell = dict(agents=("fb",), seeds=("0",), frames=4000)
     reference = tmp_path / "reference"

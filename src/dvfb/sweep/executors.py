@@ -43,6 +43,7 @@ from dvfb.sweep.units import (
     clear_stop,
     find_unit,
     is_done,
+    jobs_of,
     mark_failed,
     mark_requeued,
     read_state,
@@ -129,13 +130,12 @@ def _dependents_not_run(outcome: Outcome, units: list[Unit], why: str) -> None:
 def run_debug(sweep: SweepDir, config: SweepConfig) -> Outcome:
     outcome = Outcome()
     threads = config.torch_threads
-    for cell in spec.cells(config):
-        first, *rest = units_of(config, cell)
-        if _record(outcome, first, lambda u=first: run_unit(str(sweep.path), cell.name, u.name, threads, True), True):
+    for first, rest in jobs_of(config):
+        if _record(outcome, first, lambda u=first: run_unit(str(sweep.path), u.cell.name, u.name, threads, True), True):
             for unit in rest:
-                _record(outcome, unit, lambda u=unit: run_unit(str(sweep.path), cell.name, u.name, threads, True), True)
+                _record(outcome, unit, lambda u=unit: run_unit(str(sweep.path), u.cell.name, u.name, threads, True), True)
         else:
-            _dependents_not_run(outcome, rest, f"the pre-training of {cell.name} did not finish")
+            _dependents_not_run(outcome, rest, f"the pre-training of {first.cell.name} did not finish")
     return outcome
 
 
@@ -162,8 +162,7 @@ def run_local(sweep: SweepDir, config: SweepConfig) -> Outcome:
                 future = pool.submit(run_unit, str(sweep.path), unit.cell.name, unit.name, threads)
                 pending[future] = (unit, dependents)
 
-            for cell in spec.cells(config):
-                first, *rest = units_of(config, cell)
+            for first, rest in jobs_of(config):
                 start(first, rest)
             while pending:
                 if received:
@@ -321,8 +320,9 @@ def run_slurm(sweep: SweepDir, config: SweepConfig) -> Outcome:
     pretrain_batch: list[Unit] = []  # cells whose pre-training is submitted now
     ready: dict[str, list[Unit]] = {}  # phase -> units whose pre-training is done: no dependency
     after_flight: list[tuple[Unit, str]] = []  # units whose pre-training job is still in flight
-    for cell in spec.cells(config):
-        first, *rest = units_of(config, cell)
+    jobs = jobs_of(config)
+    dependents = {first.key: rest for first, rest in jobs}
+    for first, rest in jobs:
         todo = [u for u in rest if not is_done(sweep, config, u) and in_flight(u) is None]
         if is_done(sweep, config, first):
             for unit in todo:
@@ -336,11 +336,14 @@ def run_slurm(sweep: SweepDir, config: SweepConfig) -> Outcome:
         submitted.update({u.key: j for u, j in zip(pretrain_batch, ids)})
         array_id = ids[0].split("_")[0]
         # Aligned arrays: task i of each depends on task i of the pre-training array.
-        by_cell = {cell.name: units_of(config, cell)[1:] for cell in spec.cells(config)}
+        by_cell = {first.cell.name: dependents[first.key] for first in pretrain_batch}
         names = sorted({u.name for first in pretrain_batch for u in by_cell[first.cell.name]})
         for name in names:
             aligned = [next((u for u in by_cell[first.cell.name] if u.name == name), None) for first in pretrain_batch]
-            if all(u is not None for u in aligned):
+            if config.seeds_per_job > 1:  # a group's dependents are several cells' units: one job each
+                for first in pretrain_batch:
+                    after_flight += [(u, submitted[first.key]) for u in by_cell[first.cell.name] if u.name == name]
+            elif all(u is not None for u in aligned):
                 ids = _submit_array(executor, config, aligned[0].phase, aligned, f"aftercorr:{array_id}", sweep)
                 submitted.update({u.key: j for u, j in zip(aligned, ids)})
             else:  # a unit not every cell has (fine-tuning a task of one domain): one job each

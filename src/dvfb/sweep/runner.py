@@ -15,7 +15,7 @@ from dvfb.runs import LOCK_FILE, RunLock, read_json, write_json_atomic
 from dvfb.sweep import spec
 from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, alive_jobs
 from dvfb.sweep.spec import Cell, SweepConfig
-from dvfb.sweep.units import SweepDir, is_done, mark_failed, pretrain_target, read_state, units_of
+from dvfb.sweep.units import SweepDir, group_of, is_done, mark_failed, pretrain_target, read_state, units_of
 
 
 def prepare(path: Path, requested: SweepConfig) -> SweepDir:
@@ -158,6 +158,9 @@ def cell_status(sweep: SweepDir, config: SweepConfig, cell: Cell, jobs: dict[str
     """State (done / running / queued / failed / stopped), frames, ETA and a note of one cell."""
     units = units_of(config, cell)
     states = {u.name: read_state(sweep, u) or {} for u in units}
+    leader = group_of(config, cell)[0]
+    if leader != cell:  # its pre-training runs in its group leader's unit (seeds_per_job)
+        states["pretrain"] = read_state(sweep, units_of(config, leader)[0]) or {}
     done = [is_done(sweep, config, u) for u in units]
     target = pretrain_target(config, cell)
     record = _last_train_record(sweep.run_path(cell))

@@ -89,6 +89,8 @@ class SweepConfig:
     workers: int = param(0, "local: phases that run at once; 0 = the number of cores.")
     torch_threads: int = param(0, "torch threads per phase; 0 = cores / workers (local), the job's CPUs (slurm), "
                                   "torch's default (debug).")
+    seeds_per_job: int = param(1, "Seeds of a cell whose pre-training runs as one group, in one process and one "
+                                  "job (dvfb pretrain --seeds, docs/members.md); 1 = a process per seed.", at_least=1)
     report: bool = param(True, "Write SWEEP/report (dvfb report, ± over seeds) when every cell is done.")
     slurm: SlurmConfig = field(default_factory=SlurmConfig, metadata={"help": "The slurm executor."})
 
@@ -327,6 +329,31 @@ def cells(config: SweepConfig) -> list[Cell]:
                     for seed in config.seeds:
                         out.append(Cell(f"{agent}_{place}{swept}_s{seed}", agent, domain, seed, values, axes))
     return out
+
+
+def job_groups(config: SweepConfig) -> list[list[Cell]]:
+    """The cells whose pre-training runs as one group (``seeds_per_job`` seeds of a cell that differ
+    only in their seed, in the sweep's seed order); the first of each is its leader."""
+    groups: dict[tuple, list[list[Cell]]] = {}
+    order: list[tuple] = []
+    for cell in cells(config):
+        key = (cell.agent, cell.domain, cell.values)
+        if key not in groups:
+            groups[key] = [[]]
+            order.append(key)
+        if len(groups[key][-1]) == config.seeds_per_job:
+            groups[key].append([])
+        groups[key][-1].append(cell)
+    return [group for key in order for group in groups[key]]
+
+
+SEED_SUFFIX = "_s{seed}"
+
+
+def group_run_template(cell: Cell) -> str:
+    """A cell's run-directory name with its seed as ``{seed}`` (what ``dvfb pretrain --seeds`` fills in)."""
+    own = f"_s{cell.seed}"
+    return cell.name[: -len(own)] + SEED_SUFFIX
 
 
 def cell_task(cell: Cell) -> str | None:

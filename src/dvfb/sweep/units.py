@@ -113,6 +113,24 @@ def units_of(config: SweepConfig, cell: Cell) -> list[Unit]:
     return units
 
 
+def group_of(config: SweepConfig, cell: Cell) -> list[Cell]:
+    """The cells whose pre-training runs with ``cell``'s in one group (itself alone when
+    ``seeds_per_job`` is 1); the first is the group's leader."""
+    if config.seeds_per_job == 1:
+        return [cell]
+    return next(group for group in spec.job_groups(config) if cell in group)
+
+
+def jobs_of(config: SweepConfig) -> list[tuple[Unit, list[Unit]]]:
+    """What the executors run: each pre-training job (a cell's, or a group leader's for the group)
+    with the units that wait for it (the other phases of every cell of the group)."""
+    jobs = []
+    for group in spec.job_groups(config) if config.seeds_per_job > 1 else [[c] for c in spec.cells(config)]:
+        first = units_of(config, group[0])[0]
+        jobs.append((first, [u for cell in group for u in units_of(config, cell)[1:]]))
+    return jobs
+
+
 def find_unit(config: SweepConfig, cell_name: str, unit_name: str) -> Unit:
     for cell in spec.cells(config):
         if cell.name == cell_name:
@@ -145,8 +163,8 @@ def finetune_dir(sweep: SweepDir, cell: Cell, task: str) -> Path:
 
 
 def is_done(sweep: SweepDir, config: SweepConfig, unit: Unit) -> bool:
-    if unit.phase == "pretrain":
-        return pretrain_done(sweep, config, unit.cell)
+    if unit.phase == "pretrain":  # a group leader's unit: every member's
+        return all(pretrain_done(sweep, config, cell) for cell in group_of(config, unit.cell))
     if unit.phase == "zeroshot":
         return not missing_zeroshot_tasks(sweep, config, unit.cell)
     return (finetune_dir(sweep, unit.cell, unit.task) / "finetune_summary.json").is_file()
@@ -164,6 +182,18 @@ def command(sweep: SweepDir, config: SweepConfig, unit: Unit, torch_threads: int
     """The ``dvfb`` arguments that run (or continue) the unit; the unit must not be done."""
     cell = unit.cell
     run = sweep.run_path(cell)
+    group = group_of(config, cell) if unit.phase == "pretrain" else [cell]
+    if len(group) > 1:
+        # One process for the group's seeds (docs/members.md); it resumes when its members have
+        # checkpoints (written together), and starts over when none has one yet.
+        runs = [sweep.run_path(c) for c in group]
+        resume = any(latest_checkpoint(r) is not None for r in runs)
+        again = [] if resume or not any(r.exists() for r in runs) else ["--overwrite"]
+        return ["pretrain", "--agent", cell.agent, "--domain", cell.domain,
+                "--seeds", ",".join(str(c.seed) for c in group), "--preset", config.preset,
+                "--run-dir", str(sweep.runs_dir / spec.group_run_template(cell)), "--no-progress",
+                "--torch-threads", str(torch_threads), *spec.pretrain_flags(cell),
+                *(["--resume"] if resume else again)]
     if unit.phase == "pretrain":
         return ["pretrain", "--agent", cell.agent, "--domain", cell.domain, "--seed", str(cell.seed),
                 "--preset", config.preset, "--run-dir", str(run), "--no-progress",
