@@ -28,6 +28,8 @@ Sections (``--only`` picks a subset; all run by default):
   forward + rollout noise) + dvfb env step + replay add, for the small and paper actors. Both
   replicate the loop body of dvfb.workflows.pretrain (z resampling and its host copy, non-finite
   action check, episode resets) minus the update. Also: microseconds per ``agent.act``.
+* ``members``   -- N seeds as one stacked group against N separate processes (bench/members.py,
+  docs/members.md); only when asked for (``--only members``).
 * ``e2e``       -- frames/s of ``python -m dvfb pretrain --agent E2E_AGENT`` (``--e2e-agent``,
   default dvfb) at the small preset (default 6000 frames
   of which 2000 seed frames), as a subprocess into a temporary run directory: the run's own
@@ -85,8 +87,11 @@ from dvfb.training.monitor import MetricWindow, check_action
 from dvfb.workflows.config import PretrainConfig, agent_sections, preset_config, run_config_from_dict
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import members as members_bench  # noqa: E402 - bench/members.py, the members section
 RESULTS_PATH = HERE / "results" / "learner.json"
-SECTIONS = ("learner", "scaling", "collector", "e2e")
+SECTIONS = ("learner", "scaling", "collector", "e2e", "members")
+DEFAULT_SECTIONS = ("learner", "scaling", "collector", "e2e")
 
 
 def paper_widths_at(hidden: int, batch: int) -> dict:
@@ -713,7 +718,9 @@ COLLECTOR_COLUMNS = (("path", "path", "<48", "{}"), ("steps/s", "steps_per_s", "
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--only", default=",".join(SECTIONS), help="comma-separated sections: " + ", ".join(SECTIONS))
+    parser.add_argument("--only", default=",".join(DEFAULT_SECTIONS),
+                        help="comma-separated sections: " + ", ".join(SECTIONS) + " (default: all but members, "
+                             "which takes ~25 minutes on 2 cores)")
     parser.add_argument("--quick", action="store_true", help="fewer repetitions, a 2x2 scaling grid, shorter e2e")
     parser.add_argument("--threads", default=None,
                         help="torch threads (default: torch's default); a comma list (e.g. 1,2) repeats every "
@@ -744,11 +751,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--e2e-seed-frames", type=int, default=2000)
     parser.add_argument("--output", type=Path, default=RESULTS_PATH, help="JSON output path")
     parser.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--members", default=",".join(map(str, members_bench.MEMBER_COUNTS)),
+                        help="members section: group sizes N of the learner rows")
+    parser.add_argument("--members-e2e-agents", default="fb,dvfb",
+                        help="members section: agents of the end-to-end rows (empty: none)")
+    parser.add_argument("--members-e2e-counts", default="5", help="members section: N of the end-to-end rows")
+    parser.add_argument("--members-e2e-frames", type=int, default=3000, help="members section: frames per member")
+    parser.add_argument("--members-e2e-seed-frames", type=int, default=1000)
+    parser.add_argument("--members-probe", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
 
     if args.memory_probe is not None:
         print(json.dumps(memory_probe(json.loads(args.memory_probe))))
         return 0
+    if args.members_probe is not None:
+        print(json.dumps(members_bench.separate_probe(json.loads(args.members_probe))))
+        return 0
+    args.members_e2e_counts = [int(n) for n in args.members_e2e_counts.split(",") if n.strip()]
 
     sections = [s.strip() for s in args.only.split(",") if s.strip()]
     unknown = sorted(set(sections) - set(SECTIONS))
@@ -847,6 +866,19 @@ def main(argv: list[str] | None = None) -> int:
                     f"frames/s over the run: {e['frames_per_s']:.1f}; training phase (steps "
                     f"{e['training_phase_window']}): {steady:.1f} frames/s" if steady else
                     f"frames/s over the run: {e['frames_per_s']:.1f}", ""]
+    if "members" in sections:
+        report["members"] = members_bench.run_members(args, devices[0], obs_dim, action_dim, model_config,
+                                                      filled_replay)
+        m = report["members"]
+        out += ["## Members (small preset; one process with N stacked members against the best schedule of N "
+                "separate processes on the same cores; docs/members.md)",
+                table(m["learner"], members_bench.MEMBER_COLUMNS), ""]
+        if m.get("func"):
+            out += ["### Stacked blocks against torch.func (FB losses, forward + backward)",
+                    table(m["func"], members_bench.FUNC_COLUMNS), ""]
+        if m.get("e2e"):
+            out += ["### End to end (dvfb pretrain --seeds against separate dvfb pretrain processes)",
+                    table(m["e2e"], members_bench.E2E_COLUMNS), ""]
     peak_line = "; ".join(f"{p['device']} {p['dtype']} {p['threads']} thr: {p['gflops']:.1f} GFLOP/s"
                           for p in peak_rows)
     print(f"# dvfb learner benchmark (threads {args.thread_counts}; peak and sections other than the "
