@@ -765,7 +765,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(memory_probe(json.loads(args.memory_probe))))
         return 0
     if args.members_probe is not None:
-        print(json.dumps(members_bench.separate_probe(json.loads(args.members_probe))))
+        print(json.dumps(members_bench.separate_probe(json.loads(args.members_probe), filled_replay)))
         return 0
     args.members_e2e_counts = [int(n) for n in args.members_e2e_counts.split(",") if n.strip()]
 

@@ -72,11 +72,9 @@ def time_group(agent_name, config, obs_dim, action_dim, n, filled_replay, device
     return {"ms_per_group_update": ms, "ms_per_member_update": ms / n}
 
 
-def separate_probe(spec: dict) -> dict:
-    """In a subprocess: ms per update of one ordinary agent at ``spec['threads']`` threads."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from learner import filled_replay  # noqa: PLC0415 - the bench's own helper
-
+def separate_probe(spec: dict, filled_replay) -> dict:
+    """In a subprocess: ms per update of one ordinary agent at ``spec['threads']`` threads
+    (``filled_replay``: bench/learner.py's replay builder)."""
     from dvfb.workflows.config import run_config_from_dict
     torch.set_num_threads(spec["threads"])
     device = torch.device(spec["device"])
