@@ -46,13 +46,17 @@ class MetricWindow:
         self.steps.append(step)
         self.rows.append(metrics)
 
+    def _read(self, shape: tuple) -> tuple[list[str], np.ndarray, list[int]]:
+        """The window as ``(keys, values (updates, metrics, *shape), steps)`` in one host sync, emptied."""
+        keys = list(self.rows[0])
+        table = torch.stack([torch.stack([row[k].float().reshape(shape) for k in keys]) for row in self.rows])
+        steps, self.steps, self.rows = self.steps, [], []
+        return keys, table.cpu().numpy(), steps
+
     def flush(self) -> dict[str, float]:
         if not self.rows:
             return {}
-        keys = list(self.rows[0])
-        table = torch.stack([torch.stack([row[k].float().reshape(()) for k in keys]) for row in self.rows])
-        values = table.cpu().numpy()
-        steps, self.steps, self.rows = self.steps, [], []
+        keys, values, steps = self._read(())
         message = nonfinite_message(keys, values, steps, self.hint)
         if message is not None:
             raise NonFiniteLossError(message)
@@ -73,7 +77,7 @@ def nonfinite_message(keys: list[str], values: np.ndarray, steps: list[int], hin
             f"(non-finite there: {', '.join(bad_keys)}){hint}")
 
 
-class GroupWindow:
+class GroupWindow(MetricWindow):
     """A group's metric window (docs/members.md): per-update metrics of shape ``(M,)``, one entry
     per live member, read back in one host sync per window for all members.
 
@@ -84,22 +88,14 @@ class GroupWindow:
 
     def __init__(self, members: Callable[[], list], on_fault: Callable[[object, str], None],
                  hint: Callable[[list[str]], str] | None = None) -> None:
-        self.members, self.on_fault, self.hint = members, on_fault, hint
-        self.steps: list[int] = []
-        self.rows: list[dict[str, torch.Tensor]] = []
+        super().__init__(hint)
+        self.members, self.on_fault = members, on_fault
         self.pending: dict[int, dict[str, float]] = {}
-
-    def add(self, step: int, metrics: dict[str, torch.Tensor]) -> None:
-        self.steps.append(step)
-        self.rows.append(metrics)
 
     def flush(self) -> dict[str, float]:
         if not self.rows:
             return {}
-        keys = list(self.rows[0])
-        table = torch.stack([torch.stack([row[k].float().reshape(-1) for k in keys]) for row in self.rows])
-        values = table.cpu().numpy()  # (updates, metrics, members)
-        steps, self.steps, self.rows = self.steps, [], []
+        keys, values, steps = self._read((-1,))  # values: (updates, metrics, members)
         faults = []
         for i, member in enumerate(self.members()):
             message = nonfinite_message(keys, values[:, :, i], steps, self.hint)
