@@ -354,6 +354,34 @@ def job_state(job: str) -> str:
     return out.strip()
 
 
+def job_run_time_s(job: str) -> int:
+    """How long the job has been running, from ``scontrol``'s RunTime ([D-]HH:MM:SS)."""
+    out = subprocess.run(["scontrol", "show", "job", "-o", job], capture_output=True, text=True, check=True).stdout
+    text = out.split("RunTime=", 1)[1].split()[0]
+    days, _, clock = text.rpartition("-")
+    hours, minutes, seconds = (int(x) for x in clock.split(":"))
+    return ((int(days or 0) * 24 + hours) * 60 + minutes) * 60 + seconds
+
+
+def lower_time_limit(job: str) -> None:
+    """Lower the job's limit (whole minutes from its start) to end 35 to 95 s from now.
+
+    slurmctld checks limits every 30 s. A limit already passed at that check ends the job without
+    the USR2 warning (the time-out is checked first), so the limit is set from the job's run time,
+    not as a fixed minute; with the sweep's default signal delay (120 s) the next check sends USR2."""
+    minutes = -(-(job_run_time_s(job) + 35) // 60)
+    subprocess.run(["scontrol", "update", f"jobid={job}", f"TimeLimit={minutes}"], check=True, capture_output=True)
+
+
+def requeued_by_slurm(sweep_dir: Path, cell: str, unit: str) -> bool:
+    """True once the unit recorded its requeue; a unit that ended in any other way fails at once."""
+    state = unit_state(sweep_dir, cell, unit)
+    if "requeued by SLURM" in (state["reason"] or ""):
+        return True
+    assert state["state"] == "running", f"{unit} ended without a requeue: {state}"
+    return False
+
+
 def release_requeued(job: str) -> None:
     """SLURM holds a requeued job for two minutes (Reason=BeginTime); release it at once, as an
     administrator can, so that the tests do not wait."""
@@ -362,27 +390,28 @@ def release_requeued(job: str) -> None:
 
 def test_time_limits_requeue_pretraining_and_finetuning_and_end_bit_identical(tmp_path, slurm_cluster):  # noqa: F811
     """A real time limit for each phase: once the phase has written a checkpoint, the test lowers
-    its job's limit to one minute, so that SLURM sends USR2 (45 s before the limit) at its next
-    check; the phase ignores USR2, the runner stops it with SIGTERM (it checkpoints), the job
+    its job's limit to end 35 to 95 s later, so that SLURM sends USR2 (120 s before the limit by
+    default) at its next periodic check; the phase ignores USR2, the runner stops it with SIGTERM (it checkpoints), the job
     requeues itself and the next attempt resumes. The uninterrupted reference runs beside it, and
     both phases end bit-identical to it."""
+    # Each phase runs about a minute on an idle machine, so that it cannot end before the USR2
+    # that the next limit check (at most 30 s after the limit is lowered) sends.
     finetune = ["--phases", "pretrain", "finetune", "--finetune-tasks", "walker_walk",
-                "--finetune.frames", "28000", "--finetune.eval-every", "14000", "--finetune.eval-episodes", "1",
+                "--finetune.frames", "56000", "--finetune.eval-every", "28000", "--finetune.eval-episodes", "1",
                 "--finetune.seed-frames", "300", "--finetune.update-every", "4", "--finetune.checkpoint-every", "1000"]
-    one_cell = dict(agents=("fb",), seeds=("0",), frames=30000, extra=finetune)
+    one_cell = dict(agents=("fb",), seeds=("0",), frames=60000, extra=finetune)
     reference, sweep_dir = tmp_path / "reference", tmp_path / "limited"
-    limits = ["--slurm.signal-delay-s", "45"]
-    processes = [subprocess.Popen([sys.executable, "-m", "dvfb", *sweep_args(d, executor, **one_cell), *extra],
+    processes = [subprocess.Popen([sys.executable, "-m", "dvfb", *sweep_args(d, executor, **one_cell)],
                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-                 for d, executor, extra in ((reference, "debug", []), (sweep_dir, "slurm", limits))]
+                 for d, executor in ((reference, "debug"), (sweep_dir, "slurm"))]
     run = sweep_dir / "runs" / "fb_walker_s0"
     try:
         for unit, run_dir in (("pretrain", run), ("finetune-walker_walk", run / "finetune" / "walker_walk")):
             wait_until(lambda: (run_dir / "checkpoints" / "latest").exists(), f"the first {unit} checkpoint")
             job = sweep_jobs(sweep_dir)[f"fb_walker_s0/{unit}"]
-            subprocess.run(["scontrol", "update", f"jobid={job}", "TimeLimit=1"], check=True, capture_output=True)
-            wait_until(lambda: "requeued by SLURM" in (unit_state(sweep_dir, "fb_walker_s0", unit)["reason"] or ""),
-                       f"the {unit} job to stop at its time limit", limit_s=300)  # slurmctld's limit checks are periodic, and slower under load
+            lower_time_limit(job)
+            wait_until(lambda: requeued_by_slurm(sweep_dir, "fb_walker_s0", unit),
+                       f"the {unit} job to stop at its time limit", limit_s=300)
             wait_until(lambda: job_state(job) == "PENDING", f"the {unit} job to be requeued")
             subprocess.run(["scontrol", "update", f"jobid={job}", "TimeLimit=30"], check=True, capture_output=True)
             release_requeued(job)
@@ -413,13 +442,13 @@ def test_time_limits_requeue_pretraining_and_finetuning_and_end_bit_identical(tm
                 assert torch.equal(value, b[key]), f"{name}: {key} differs"
     curve = json.loads((run / "finetune" / "walker_walk" / "curve.json").read_text())["curve"]
     expected = json.loads((expected_run / "finetune" / "walker_walk" / "curve.json").read_text())["curve"]
-    assert [p["frames"] for p in curve] == [0, 14000, 28000]
+    assert [p["frames"] for p in curve] == [0, 28000, 56000]
     assert [p["returns"] for p in curve] == [p["returns"] for p in expected]
     from dvfb.runs import RunDir, load_checkpoint
 
     final = load_checkpoint(RunDir(run / "finetune" / "walker_walk"))
     expected_final = load_checkpoint(RunDir(expected_run / "finetune" / "walker_walk"))
-    assert final["step"] == expected_final["step"] == 28000
+    assert final["step"] == expected_final["step"] == 56000
     tensors = {k: v for k, v in _flatten(final["finetuner"]) if isinstance(v, torch.Tensor)}
     expected_tensors = dict(_flatten(expected_final["finetuner"]))
     assert tensors and all(torch.equal(v, expected_tensors[k]) for k, v in tensors.items())
