@@ -4,7 +4,6 @@ errors of a bad --seeds command."""
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import subprocess
 import sys
@@ -167,13 +166,6 @@ def test_a_group_refuses_an_existing_member_directory_before_creating_any(tmp_pa
     assert done.returncode != 0 and "already exists" in done.stderr
     assert not (tmp_path / "r_0").exists()
     assert sorted(p.name for p in (tmp_path / "r_1").iterdir()) == before
-
-
-def test_copy_of_group_is_not_needed_for_twins():
-    # A deep copy of an ordinary agent stays ordinary (what the equivalence tests rely on).
-    from dvfb.agents import make_agent
-    agent = make_agent("fb", 4, 2, tiny_run_config("fb"), "cpu")
-    assert copy.deepcopy(agent).members == 0
 
 
 def test_a_group_that_does_not_fit_is_refused_before_anything_is_built(tmp_path):

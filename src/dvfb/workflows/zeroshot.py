@@ -35,6 +35,7 @@ from dvfb.replay import PHYSICS_COLUMN, ReplayBuffer
 from dvfb.runs import RunDir, check_writable, load_checkpoint, write_json_atomic
 from dvfb.training.monitor import Progress
 from dvfb.training.seeding import seed_everything
+from dvfb.workflows.config import agent_sections
 from dvfb.workflows.resources import evaluation_tasks
 from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 from dvfb.training.seeding import run_generator
@@ -203,7 +204,6 @@ def zeroshot_group(run_paths: list[str | Path], task: str, *, snapshot: int | No
         evaluation_tasks(config, [task])
         members.append((run, config, protocol))
     first = members[0][1]
-    from dvfb.workflows.config import agent_sections
     for run, config, _protocol in members[1:]:
         if config.agent != first.agent or agent_sections(config) != agent_sections(first) \
                 or config.domain != first.domain:
