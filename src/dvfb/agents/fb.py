@@ -99,7 +99,9 @@ def implicit_reward(backward: torch.Tensor, z: torch.Tensor, ridge: float = 0.0)
         return (backward * solution.mT).sum(-1)
     if backward.dim() == 2:
         return backward @ solution.squeeze(-1)
-    return (backward @ solution).squeeze(-1)
+    # A group's one z per member: each member's own matrix-vector product, which rounds as its
+    # separate run's does (a batched product does not).
+    return torch.stack([member @ x.squeeze(-1) for member, x in zip(backward, solution)])
 
 
 def infer_z_from_rewards(features: torch.Tensor, rewards: torch.Tensor,
@@ -298,7 +300,7 @@ class FBAgent(Agent):
         diag = m.diagonal(dim1=-2, dim2=-1).mean(-1)  # (2,)
         fb_loss = (0.5 * offdiag - diag).sum(-1)
 
-        ortho_loss = orthonormality_loss(backward)
+        ortho_loss = orthonormality_loss(backward, self.members)
         losses = {"fb_loss": fb_loss, "fb_offdiag": offdiag.mean(-1), "fb_diag": diag.mean(-1),
                   "ortho_loss": ortho_loss}
         total = fb_loss + c.ortho_coef * ortho_loss

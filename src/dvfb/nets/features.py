@@ -73,7 +73,7 @@ class LaplacianFeatures(FeatureLearner):
     def loss(self, obs, action, next_obs, next_features):
         features = self.phi(obs)
         smoothness = member_mean((features - next_features).pow(2), self.members)
-        ortho = orthonormality_loss(features)
+        ortho = orthonormality_loss(features, self.members)
         return smoothness + ortho, {"feature_smoothness": smoothness.detach(), "feature_ortho": ortho.detach()}
 
 
@@ -91,7 +91,7 @@ class TransitionLowRankFeatures(FeatureLearner):
         p = row_products(self.mu(torch.cat([obs, action], dim=-1)), next_features, self.members)  # (N, N)
         diag = p.diagonal(dim1=-2, dim2=-1).mean(-1)
         offdiag = offdiag_mean(p.pow(2))
-        ortho = orthonormality_loss(next_features)
+        ortho = orthonormality_loss(next_features, self.members)
         return -2 * diag + offdiag + ortho, {"feature_diag": diag.detach(), "feature_offdiag": offdiag.detach(),
                                              "feature_ortho": ortho.detach()}
 
@@ -122,7 +122,7 @@ class SuccessorLowRankFeatures(FeatureLearner):
         sr = row_products(features, self.mu(next_obs), self.members)  # (N, N)
         diag = sr.diagonal(dim1=-2, dim2=-1).mean(-1)
         td = offdiag_mean((sr - self.discount * target_sr).pow(2))
-        ortho = orthonormality_loss(features)
+        ortho = orthonormality_loss(features, self.members)
         return -2 * diag + td + ortho, {"feature_diag": diag.detach(), "feature_td": td.detach(),
                                         "feature_ortho": ortho.detach()}
 

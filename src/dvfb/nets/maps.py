@@ -8,6 +8,7 @@ from torch import nn
 
 from dvfb.nets.geometry import project_to_sphere
 from dvfb.nets.layers import TwinHead, full_precision, layernorm_tanh_layer, mlp, orthogonal_init_
+from dvfb.nets.members import row_products
 from dvfb.nets.policy import TwoStreamEncoder
 
 
@@ -58,11 +59,11 @@ def offdiag_mean(matrix: torch.Tensor) -> torch.Tensor:
     return (total - diag) / (n * (n - 1))
 
 
-def orthonormality_loss(features: torch.Tensor) -> torch.Tensor:
+def orthonormality_loss(features: torch.Tensor, members: int = 0) -> torch.Tensor:
     """``mean_{i!=j} G_ij^2 - 2 mean_i G_ii`` with ``G = features features^T`` (§7.10): the
     regulariser that pushes ``E[f f^T]`` towards the identity (B of FB, phi of the SF family); one
     loss per member for a group's ``(M, N, d)``."""
-    gram = features @ features.mT
+    gram = row_products(features, features, members)
     return offdiag_mean(gram.pow(2)) - 2 * gram.diagonal(dim1=-2, dim2=-1).mean(-1)
 
 

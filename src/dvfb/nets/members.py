@@ -6,7 +6,7 @@ A method file stays written for one seed; the shared blocks carry the axis:
 
 * :func:`stack_agents` turns N ordinary agents (built as N separate runs would build them) into one
   agent over stacked tensors, in place of the first; :func:`member_training_state` and
-  :func:`member_state_dict` give member k's ordinary state back (checkpoints, snapshots);
+  :func:`member_slice` give member k's ordinary state back (checkpoints, snapshots);
 * ``nn.Linear`` and ``nn.LayerNorm`` become :class:`MemberLinear` / :class:`MemberLayerNorm` (one
   batched product for all members); the blocks with their own parameters (``TwinHead``,
   ``RunningMeanStd``, the reward modules) read ``module.members``;
@@ -106,28 +106,38 @@ def minimise(optimizer: torch.optim.Optimizer, loss: torch.Tensor, inputs=None) 
     optimizer.step()
 
 
-class _ContiguousGrad(torch.autograd.Function):
-    """Identity whose gradient is made contiguous, the layout ``mm`` gives it in an ordinary
-    ``a @ b.T``: the backward pass after it then rounds as a separate run's does."""
+class _RowProducts(torch.autograd.Function):
+    """``x @ rows^T (+ bias)`` per member: ``x`` ``(M, P, d)``, ``rows`` ``(M, N, d)``, ``bias``
+    ``(M, N)`` or None, one batched product, differentiated as the ordinary ``mm`` / ``addmm``
+    is: ``grad_x = g rows``, ``grad_rows = g^T x`` (in ``rows``' layout; autograd's ``bmm`` forms
+    ``(x^T g)^T``, which some CPU kernels round otherwise for narrow ``d``, docs/members.md) and
+    ``grad_bias`` the sum of ``g`` over the ``P`` rows."""
 
     @staticmethod
-    def forward(ctx, x):
-        return x.view_as(x)
+    def forward(ctx, x, rows, bias):
+        ctx.save_for_backward(x, rows)
+        ctx.has_bias = bias is not None
+        if bias is None:
+            return torch.bmm(x, rows.mT)
+        return torch.baddbmm(bias.unsqueeze(1), x, rows.mT)
 
     @staticmethod
     def backward(ctx, grad):
-        return grad.contiguous()
+        x, rows = ctx.saved_tensors
+        grad_x = torch.bmm(grad, rows) if ctx.needs_input_grad[0] else None
+        grad_rows = torch.bmm(grad.mT, x) if ctx.needs_input_grad[1] else None
+        grad_bias = grad.sum(1) if ctx.has_bias and ctx.needs_input_grad[2] else None
+        return grad_x, grad_rows, grad_bias
 
 
 def row_products(x: torch.Tensor, rows: torch.Tensor, members: int) -> torch.Tensor:
     """``x @ rows^T``: ``x`` ``(..., P, d)`` and ``rows`` ``(N, d)`` give ``(..., P, N)`` (F B^T of
-    every head, the SF and conservative-FB measures). A group (``(M, ..., P, d)``, ``(M, N, d)``)
-    folds x's leading axes into rows as the ordinary ``matmul`` does, one product per member: bit
-    for bit the ordinary one, forward and backward (a broadcast ``bmm`` lays out, hence rounds, the
-    gradient of ``rows`` differently)."""
+    every head, B B^T, the SF and conservative-FB measures). A group (``(M, ..., P, d)``,
+    ``(M, N, d)``) folds x's leading axes into rows as the ordinary ``matmul`` does, one product per
+    member: bit for bit the ordinary one, forward and backward (:class:`_RowProducts`)."""
     if not members:
         return torch.matmul(x, rows.T)
-    product = torch.bmm(x.reshape(members, -1, x.shape[-1]), _ContiguousGrad.apply(rows).mT)
+    product = _RowProducts.apply(x.reshape(members, -1, x.shape[-1]), rows, None)
     return product.reshape(*x.shape[:-1], rows.shape[-2])
 
 
@@ -135,17 +145,15 @@ def row_products(x: torch.Tensor, rows: torch.Tensor, members: int) -> torch.Ten
 
 class MemberLinear(nn.Linear):
     """``nn.Linear`` over stacked weights ``(M, out, in)`` and biases ``(M, out)``: inputs
-    ``(M, ..., in)``, one batched product for all members."""
+    ``(M, ..., in)``, one batched product for all members, forward and backward."""
 
     members: int = 0
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if not self.members:
             return F_nn.linear(x, self.weight, self.bias)
-        m = self.members
-        flat = x.reshape(m, -1, x.shape[-1])
-        out = torch.baddbmm(self.bias.unsqueeze(1), flat, self.weight.mT) if self.bias is not None \
-            else torch.bmm(flat, self.weight.mT)
+        flat = x.reshape(self.members, -1, x.shape[-1])
+        out = _RowProducts.apply(flat, self.weight, self.bias)
         return out.reshape(*x.shape[:-1], out.shape[-1])
 
 
@@ -241,11 +249,6 @@ def _stack_state_value(key: str, values: list):
     return torch.stack([v.detach() for v in values])
 
 
-def member_state_dict(state: dict, k: int) -> dict:
-    """Member k's slice of a stacked ``state_dict`` (every tensor has the member axis)."""
-    return {key: (v[k].clone() if isinstance(v, torch.Tensor) else v) for key, v in state.items()}
-
-
 def member_optimizer_state(state: dict, k: int) -> dict:
     """Member k's slice of a stacked optimiser ``state_dict``."""
     return {"param_groups": state["param_groups"],
@@ -253,10 +256,19 @@ def member_optimizer_state(state: dict, k: int) -> dict:
                       for i, s in state["state"].items()}}
 
 
+def member_slice(state, k: int):
+    """Member k's part of a group's nested state (dicts of stacked tensors and optimiser state
+    dicts, as a training state or a fine-tuner's resumable state holds them)."""
+    if isinstance(state, dict):
+        if "param_groups" in state and "state" in state:
+            return member_optimizer_state(state, k)
+        return {key: member_slice(value, k) for key, value in state.items()}
+    return state[k].clone() if isinstance(state, torch.Tensor) else state
+
+
 def member_training_state(agent, k: int) -> dict:
     """Member k's :meth:`~dvfb.agents.base.Agent.training_state`, as its separate run holds it."""
-    return {"modules": member_state_dict(agent.state_dict(), k),
-            "optimizers": {name: member_optimizer_state(o.state_dict(), k) for name, o in agent.optimizers().items()}}
+    return member_slice(agent.training_state(), k)
 
 
 def drop_members(agent, keep: list[int]) -> None:

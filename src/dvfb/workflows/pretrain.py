@@ -43,8 +43,8 @@ from dvfb import envs
 from dvfb.agents import get_spec, make_agent
 from dvfb.config import replace, to_dict
 from dvfb.datasets import read_dataset, read_info
-from dvfb.errors import CheckpointError, ConfigError, NonFiniteLossError, RunDirError
-from dvfb.replay import Batch, ReplayBuffer, physics_columns
+from dvfb.errors import CheckpointError, ConfigError, RunDirError
+from dvfb.replay import ReplayBuffer, physics_columns
 from dvfb.runs import (
     PRETRAIN_RESUME_KIND,
     MetricsLogger,
@@ -58,11 +58,12 @@ from dvfb.runs import (
     write_json_atomic,
 )
 from dvfb.training import loop
-from dvfb.training.loop import DatasetSource, EpisodeState, GroupSource, OnlineCollector
-from dvfb.training.monitor import GroupWindow, MetricWindow, Progress, ResumeCheckpoints, checkpoint_note, notify
+from dvfb.training.loop import DatasetSource, EpisodeState, OnlineCollector
+from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, notify
 from dvfb.training.seeding import check_resume_format, restore_rng_state, rng_state, run_generator, seed_everything
 from dvfb.workflows.resources import check_memory, check_replay, check_task_in_domain, learner_state_bytes, setup_torch
-from dvfb.nets.members import drop_members, member_state_dict, member_training_state, stack_agents
+from dvfb.nets.members import member_slice, member_training_state, stack_agents
+from dvfb.workflows.groups import MemberGroup
 from dvfb.workflows.snapshots import snapshot_name, snapshot_state
 from dvfb.workflows.config import PretrainConfig, load_run_config
 
@@ -147,7 +148,7 @@ def pretrain_group(config: PretrainConfig, seeds: list[int], run_paths: list[str
     resume checkpoints (each one a separate run's, so a member may also be resumed alone); the
     networks of all members are stacked, so an update and an action are one batched pass for all.
     A member whose loss or action goes non-finite stops with the usual one line naming its run;
-    the others finish, and the call then raises :class:`NonFiniteLossError` naming the stopped
+    the others finish, and the call then raises :class:`~dvfb.errors.NonFiniteLossError` naming the stopped
     members. ``resume`` continues every member (all must stand at the same step).
     """
     if len(seeds) < 1 or len(seeds) != len(run_paths):
@@ -202,77 +203,32 @@ def _run_group(configs, paths, parts, resume, overwrite, command, device, datase
                               + ", ".join(f"{s.run.path}: {s.step}" for s in sessions)
                               + "): a group resumes in lockstep; resume them alone")
     base = configs[0]
-    group = stack_agents([agent for _rng, _env, agent, _length, _columns in parts])
-    live = list(sessions)
-    for i, session in enumerate(live):
-        session.bind_member(group, i)
-    stopped: list[str] = []
-
-    def stop(session, message: str) -> None:
-        """A member's fault: its one line, its logs closed; the group goes on without it."""
-        line = (f"member seed {session.config.seed} ({session.run.path}): {message}; its pre-training stopped, "
-                f"{checkpoint_note(session.last_checkpoint)}")
-        notify(f"[{what}] {line}")
-        stopped.append(line)
-        session.logger.close()
-        index = live.index(session)
-        live.remove(session)
-        if not live:
-            raise NonFiniteLossError("; ".join(stopped))
-        drop_members(group, [session_.index for session_ in live])
-        for i, other in enumerate(live):
-            other.bind_member(group, i)
-
-    window = GroupWindow(lambda: list(live), stop, group.nonfinite_hint)
-    for session in sessions:
-        session.window = window.member_window(session)
-
-    def action_fault(collector, message: str) -> None:
-        window.flush()  # a loss that went non-finite first is named first
-        session = next((s for s in live if s.collector is collector), None)
-        if session is not None:
-            stop(session, message)
-
-    ended: list = []  # members whose episode ended this step, logged after the step's records
-    source = GroupSource(lambda: [s.collector for s in live],
-                         lambda obs, skill: group.act_members(obs, skill, explore=True), action_fault,
-                         ended.append)
-
-    def update():
-        return group.update(Batch.stack([s.sample() for s in live]))
+    group = MemberGroup(sessions, stack_agents([agent for _rng, _env, agent, _length, _columns in parts]), what,
+                        "pre-training", lambda obs, skill: group.learner.act_members(obs, skill, explore=True))
 
     def after_step(t: int) -> None:
-        for session in list(live):
+        for session in list(group.live):
             session.after_step(t)
-        for session in live:
-            if session.collector in ended:
-                session.after_episode(t, session.collector.state)
-        ended.clear()
-
-    def save(mid_episode: bool) -> None:
-        for session in live:
-            session.save_resume(mid_episode)
+        for session in group.ended_episodes():
+            session.after_episode(t, session.collector.state)
 
     bar = Progress(base.frames, sessions[0].step, what, progress)
-    checkpoints = ResumeCheckpoints(save, window, base.checkpoint_every, base.frames, "pre-training",
+    checkpoints = ResumeCheckpoints(group.save, group.window, base.checkpoint_every, base.frames, "pre-training",
                                     paths[0].parent, last=sessions[0].last_checkpoint)
     columns = parts[0][4]
     try:
         with checkpoints:
-            step = loop.run(sessions[0].step, base.frames, source, update, base.seed_frames, base.update_every,
-                            window, checkpoints, bar, after_step, None)
-            window.flush()
+            step = loop.run(sessions[0].step, base.frames, group.source, group.update, base.seed_frames,
+                            base.update_every, group.window, checkpoints, bar, after_step, None)
+            group.window.flush()
             if columns:
-                checkpoints.ensure(step, mid_episode=not source.state.episode_start)
+                checkpoints.ensure(step, mid_episode=not group.source.state.episode_start)
     finally:
         bar.close()
-        for session in live:
-            session.logger.close()
-    for session in live:
+        group.close_logs()
+    for session in group.live:
         session.finish(resume)
-    if stopped:
-        raise NonFiniteLossError(f"{len(stopped)} of {len(sessions)} members stopped, the others finished: "
-                                 + "; ".join(stopped))
+    group.raise_if_stopped()
     return [s.run for s in sessions]
 
 
@@ -356,6 +312,7 @@ class PretrainSession:
     def __init__(self, config, run_path, resume, overwrite, command, device, rng, env, agent, episode_length,
                  columns, dataset=None, dataset_info=None):
         self.config, self.env, self.rng, self.columns, self.device = config, env, rng, columns, device
+        self.seed = config.seed
         self.finished = False
         obs_dim, action_dim = agent.obs_dim, agent.action_dim
         state = None
@@ -456,7 +413,7 @@ class PretrainSession:
     def snapshot(self, t: int) -> dict:
         modules = {k: m.state_dict() for k, m in self.agent.pretrained_modules().items()}
         if self.index is not None:
-            modules = {k: member_state_dict(v, self.index) for k, v in modules.items()}
+            modules = member_slice(modules, self.index)
         return snapshot_state(self.agent, self.config, t, modules)
 
     def save_resume(self, mid_episode: bool = False) -> None:

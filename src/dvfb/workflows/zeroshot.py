@@ -35,7 +35,7 @@ from dvfb.replay import PHYSICS_COLUMN, ReplayBuffer
 from dvfb.runs import RunDir, check_writable, load_checkpoint, write_json_atomic
 from dvfb.training.monitor import Progress
 from dvfb.training.seeding import seed_everything
-from dvfb.workflows.config import agent_sections
+from dvfb.workflows.groups import check_one_method
 from dvfb.workflows.resources import evaluation_tasks
 from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
 from dvfb.training.seeding import run_generator
@@ -203,12 +203,7 @@ def zeroshot_group(run_paths: list[str | Path], task: str, *, snapshot: int | No
         protocol.check_source(skill_source, config.agent)
         evaluation_tasks(config, [task])
         members.append((run, config, protocol))
-    first = members[0][1]
-    for run, config, _protocol in members[1:]:
-        if config.agent != first.agent or agent_sections(config) != agent_sections(first) \
-                or config.domain != first.domain:
-            raise ConfigError(f"{run.path} is not the same method and configuration as {members[0][0].path}: "
-                              "the members of a group differ only in their seeds")
+    check_one_method([(run, config) for run, config, _protocol in members])
     loaded = []
     for run, config, protocol in members:
         agent, snap = load_pretrained_agent(run, config, snapshot, device)
