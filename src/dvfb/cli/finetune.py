@@ -8,20 +8,21 @@ import json
 from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, progress_flag, protocol_overrides
 
 def cmd_finetune(args: argparse.Namespace) -> int:
-    from dvfb.workflows.finetune import finetune
+    from dvfb.workflows.finetune import finetune, finetune_group
 
-    run = finetune(args.run, args.task, snapshot=args.snapshot, seed=args.seed, name=args.name,
-                   inference=protocol_overrides(args, "inference"),
-                   finetune=protocol_overrides(args, "finetune"),
+    options = dict(snapshot=args.snapshot, seed=args.seed, name=args.name,
+                   inference=protocol_overrides(args, "inference"), finetune=protocol_overrides(args, "finetune"),
                    resume=args.resume, overwrite=args.overwrite, progress=args.progress)
-
-    summary = json.loads((run.path / "finetune_summary.json").read_text())
-    print(f"fine-tuning finished: {run.path}")
-    print(f"zero-shot return {summary['zero_shot_return']:.1f} -> after {summary['frames']} frames "
-          f"{summary['final_return']:.1f}")
-    if "final_success_rate" in summary:
-        print(f"zero-shot success rate {summary['zero_shot_success_rate']:.2f} -> after {summary['frames']} frames "
-              f"{summary['final_success_rate']:.2f}")
+    runs = finetune_group(args.run, args.task, **options) if len(args.run) > 1 \
+        else [finetune(args.run[0], args.task, **options)]
+    for run in runs:
+        summary = json.loads((run.path / "finetune_summary.json").read_text())
+        print(f"fine-tuning finished: {run.path}")
+        print(f"zero-shot return {summary['zero_shot_return']:.1f} -> after {summary['frames']} frames "
+              f"{summary['final_return']:.1f}")
+        if "final_success_rate" in summary:
+            print(f"zero-shot success rate {summary['zero_shot_success_rate']:.2f} -> after {summary['frames']} "
+                  f"frames {summary['final_success_rate']:.2f}")
     return 0
 
 
@@ -31,7 +32,9 @@ def register(sub, agent: str) -> None:
                                    "reward mapping and the skill value) for DVFB/FB, URLB's (pre-trained actor, "
                                    "fresh critic with the pre-trained trunk, extrinsic n-step reward, the "
                                    "selected skill) for the DDPG baselines. Defaults come from the run's config.")
-    p.add_argument("run", help="pre-training run directory")
+    p.add_argument("run", nargs="+", help="pre-training run directory; several: the members of a group (one method "
+                                          "and configuration, seeds aside), fine-tuned together in lockstep with "
+                                          "batched updates and actions (docs/members.md)")
     p.add_argument("--task", required=True, help="task name of the run's domain")
     add_snapshot_and_seed(p)
     p.add_argument("--name", default=None, help="name of the fine-tuning run under RUN/finetune/ (default: the task)")

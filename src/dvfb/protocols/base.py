@@ -102,11 +102,33 @@ class Finetuner(nn.Module):
     name: ClassVar[str] = ""
     config_cls: ClassVar[type] = FinetuneSchedule
     uniform_seed_actions: ClassVar[bool] = True
+    members: int = 0  # a group's member count (docs/members.md); 0: one run
 
     def __init__(self, agent, skill: torch.Tensor | None, config: Any):
         super().__init__()
         self.agent, self.config = agent, config
-        self.skill = None if skill is None else skill.detach().clone().to(agent.device)
+        # A buffer, so that a group's fine-tuner stacks its members' skills (docs/members.md).
+        self.register_buffer("skill", None if skill is None else skill.detach().clone().to(agent.device))
+
+    # What a group (docs/members.md) stacks: the agent's modules and the fine-tuner's own, its
+    # optimisers' states, and its random stream (the agent's).
+    @property
+    def generator(self):
+        return self.agent.generator
+
+    def use_generator(self, generator) -> None:
+        self.agent.use_generator(generator)
+
+    def nonfinite_hint(self, metric_names: list[str]) -> str:
+        return self.agent.nonfinite_hint(metric_names)
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        """The optimisers of fine-tuning (their states are stacked in a group)."""
+        raise NotImplementedError
+
+    @classmethod
+    def check_group(cls, config: Any) -> None:
+        """Refuse options a group cannot fine-tune in lockstep (one line, ConfigError)."""
 
     @classmethod
     def keeps_inference_data(cls, config: Any) -> bool:

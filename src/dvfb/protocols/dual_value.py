@@ -19,6 +19,7 @@ from dvfb.config import param
 from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner
 from dvfb.nets import (RunningMeanStd, TwinCritic, adam, freeze_, make_target, skill_values, soft_update_,
                        training_action, twin_td_loss)
+from dvfb.nets.members import member_mean, minimise, per_member
 from dvfb.replay import Batch
 
 
@@ -69,6 +70,9 @@ class DualValueFinetuner(Finetuner):
     def skill(self) -> torch.Tensor:
         return self.z
 
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"task_critic": self.critic_optimizer, "actor": self.actor_optimizer}
+
     @classmethod
     def keeps_inference_data(cls, config: FinetuneConfig) -> bool:
         return config.keep_inference_data
@@ -78,7 +82,8 @@ class DualValueFinetuner(Finetuner):
         return ReplayNeeds(fb.batch_size, fb.discount)
 
     def mapped_reward(self, batch: Batch, metrics: dict) -> torch.Tensor:
-        """``r_f = r * mu_fb / (mu_t + eps)`` with running means (§9.4 steps 1-3). ``(N, 1)``."""
+        """``r_f = r * mu_fb / (mu_t + eps)`` with running means (§9.4 steps 1-3). ``(N, 1)``
+        (a group's: ``(M, N, 1)``, each member's rescaled by its own means)."""
         c = self.config
         reward = batch.reward
         if not c.reward_mapping:
@@ -91,46 +96,44 @@ class DualValueFinetuner(Finetuner):
             if c.reward_map_abs:
                 mu_fb = mu_fb.abs()
             scale = (mu_fb / (mu_t + c.reward_map_eps)).to(reward.dtype)
-            mapped = reward * scale
+            mapped = reward * per_member(scale, reward)
             if c.reward_map_clip is not None:
                 mapped = mapped.clamp(-c.reward_map_clip, c.reward_map_clip)
         metrics["implicit_reward_mean"] = mu_fb.float()
         metrics["task_reward_mean"] = mu_t.float()
-        metrics["mapped_reward"] = mapped.mean()
+        metrics["mapped_reward"] = member_mean(mapped, self.members)
         return mapped
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         fb = self.agent.config
         actor = self.agent.actor
         metrics: dict[str, torch.Tensor] = {}
-        n = batch.obs.shape[0]
-        z = self.z.expand(n, -1)
+        members = self.members
+        # One z per row: (N, d), or (M, N, d) in a group (each member's own z_r); the twin heads'
+        # axis is -3 of the critic's values and -2 of the skill values either way.
+        z = self.z.unsqueeze(-2).expand(*batch.obs.shape[:-1], -1)
         reward = self.mapped_reward(batch, metrics)
         with torch.no_grad():
             next_action = training_action(actor(batch.next_obs, z), fb.stddev, fb.stddev_clip, self.agent.generator)
-            next_q = self.task_critic_target(batch.next_obs, z, next_action).amin(0)
+            next_q = self.task_critic_target(batch.next_obs, z, next_action).amin(-3)
             target = reward + batch.discount * next_q
         q = self.task_critic(batch.obs, z, batch.action)
         critic_loss = twin_td_loss(q, target)
-        self.critic_optimizer.zero_grad(set_to_none=True)
-        critic_loss.backward()
-        self.critic_optimizer.step()
+        minimise(self.critic_optimizer, critic_loss)
 
         action = training_action(actor(batch.obs, z), fb.stddev, fb.stddev_clip, self.agent.generator)
-        task_value = self.task_critic(batch.obs, z, action).amin(0).squeeze(-1)
+        task_value = self.task_critic(batch.obs, z, action).amin(-3).squeeze(-1)
         objective = self.config.qf_coef * task_value
         if self.config.eta != 0 or self.config.eta_mode == "adaptive":
-            skill_value = skill_values(self.agent.forward_map(batch.obs, action, z), z).amin(0)
+            skill_value = skill_values(self.agent.forward_map(batch.obs, action, z), z).amin(-2)
             eta = (task_value / skill_value).detach() if self.config.eta_mode == "adaptive" else self.config.eta
             objective = objective + eta * skill_value
-            metrics["skill_value"] = skill_value.detach().mean()
-        actor_loss = -objective.mean()
-        self.actor_optimizer.zero_grad(set_to_none=True)
-        actor_loss.backward(inputs=list(actor.parameters()))
-        self.actor_optimizer.step()
+            metrics["skill_value"] = member_mean(skill_value.detach(), members)
+        actor_loss = -member_mean(objective, members)
+        minimise(self.actor_optimizer, actor_loss, inputs=list(actor.parameters()))
         soft_update_(self.task_critic_target, self.task_critic, fb.tau)
         metrics.update(task_critic_loss=critic_loss.detach(), actor_loss=actor_loss.detach(),
-                       task_value=task_value.detach().mean())
+                       task_value=member_mean(task_value.detach(), members))
         return metrics
 
     def training_state(self) -> dict:

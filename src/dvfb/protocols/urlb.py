@@ -88,6 +88,15 @@ class DDPGFinetuner(Finetuner):
             agent.regress_skill(torch.zeros(1, agent.obs_dim, device=agent.device),
                                 torch.ones(1, 1, device=agent.device))  # its one-line error if it has none
 
+    @classmethod
+    def check_group(cls, config: DDPGFinetuneConfig) -> None:
+        if config.skill == "regressed":
+            raise ConfigError("--finetune.skill regressed fits each run's skill to its own fine-tuning replay as it "
+                              "goes; fine-tune these runs one at a time")
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return self.agent.core.optimizers()
+
     def bind_replay(self, replay) -> None:
         self.replay = replay
 
