@@ -170,13 +170,22 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
         evaluation = evaluate_policy(agent, eval_env, z, protocol.eval_episodes, progress=bar)
     finally:
         bar.close()
-    result = {
+    return _write_result(out, _result(task, config, seed, snapshot, protocol, skill_source, agent, info, z,
+                                      evaluation, started))
+
+
+def _result(task, config, seed, snapshot, protocol, skill_source, agent, info, z, evaluation, started) -> dict:
+    """What a zero-shot result file holds (one run's, or one member's of a group)."""
+    return {
         "task": task, "domain": config.domain, "agent": config.agent, "preset": config.preset,
         "pretrain_seed": config.seed, "seed": seed, "snapshot_frames": snapshot, "protocol": protocol.name,
         "skill_source": skill_source if agent.skill.has_skill else "none",
         "inference": to_dict(protocol.config), "inference_info": info, "z": None if z is None else z.cpu().tolist(),
         **evaluation.summary(), "eval_episodes": len(evaluation.returns), "wall_clock_s": time.time() - started,
     }
+
+
+def _write_result(out: Path, result: dict) -> dict:
     out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out, result)
     return result
@@ -241,17 +250,8 @@ def zeroshot_group(run_paths: list[str | Path], task: str, *, snapshot: int | No
     results = []
     for (run, config, protocol), (agent, snap, out), z, info, member_seed, evaluation in zip(
             members, loaded, skills, infos, seeds, evaluations):
-        result = {
-            "task": task, "domain": config.domain, "agent": config.agent, "preset": config.preset,
-            "pretrain_seed": config.seed, "seed": member_seed, "snapshot_frames": snap, "protocol": protocol.name,
-            "skill_source": skill_source if agent.skill.has_skill else "none",
-            "inference": to_dict(protocol.config), "inference_info": info, "z": None if z is None else z.cpu().tolist(),
-            **evaluation.summary(), "eval_episodes": len(evaluation.returns), "wall_clock_s": time.time() - started,
-            "group": [str(r.path) for r, _c, _p in members],
-        }
-        out.parent.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(out, result)
-        results.append(result)
+        result = _result(task, config, member_seed, snap, protocol, skill_source, agent, info, z, evaluation, started)
+        results.append(_write_result(out, {**result, "group": [str(r.path) for r, _c, _p in members]}))
     return results
 
 
