@@ -185,3 +185,27 @@ def test_a_group_that_does_not_fit_is_refused_before_anything_is_built(tmp_path)
     last = done.stderr.strip().splitlines()[-1]
     assert "(2 members)" in last and "needs about" in last, done.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_group_zeroshot_skip_existing_evaluates_only_the_members_without_a_result(tmp_path):
+    from dvfb.workflows.zeroshot import zeroshot
+
+    paths = [tmp_path / f"k_s{s}" for s in SEEDS]
+    pretrain_group(tiny_run_config("rnd", frames=1000), SEEDS, paths, progress=False)
+    task = "point_mass_maze_reach_top_left"
+    zeroshot(paths[0], task, inference={"eval_episodes": 1}, progress=False)
+    first = (paths[0] / "zeroshot" / f"{task}.json").read_bytes()
+
+    def cli(*extra):
+        return subprocess.run([sys.executable, "-m", "dvfb", "zeroshot", *map(str, paths), "--task", task,
+                               "--inference.eval-episodes", "1", "--no-progress", *extra],
+                              capture_output=True, text=True)
+
+    refused = cli()  # an existing result is an error: one line, nothing written
+    assert refused.returncode != 0 and len(refused.stderr.strip().splitlines()) == 1
+    assert "exists; pass --overwrite" in refused.stderr and not (paths[1] / "zeroshot").exists()
+    done = cli("--skip-existing")
+    assert done.returncode == 0, done.stderr
+    assert (paths[0] / "zeroshot" / f"{task}.json").read_bytes() == first  # left as it was
+    assert (paths[1] / "zeroshot" / f"{task}.json").is_file()
+    assert str(paths[1]) in done.stdout and str(paths[0]) not in done.stdout

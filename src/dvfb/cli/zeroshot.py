@@ -12,7 +12,7 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
     from dvfb.workflows.zeroshot import zeroshot, zeroshot_group
 
     group = len(args.run) > 1
-    _run, config = open_pretrained_run(args.run[0])
+    first_run, config = open_pretrained_run(args.run[0])
     for other in args.run[1:]:
         open_pretrained_run(other)  # names a missing or broken run before any work
     from dvfb.workflows.resources import evaluation_tasks
@@ -26,10 +26,16 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
                    dataset=args.dataset)
     rows = []
     for task in tasks:
-        results = zeroshot_group(args.run, task, **options) if group else [zeroshot(args.run[0], task, **options)]
+        if group:
+            results = zeroshot_group(args.run, task, skip_existing=args.skip_existing, **options)
+        elif args.skip_existing and not args.overwrite and _existing_result(first_run, config, task, args.snapshot):
+            results = [None]
+        else:
+            results = [zeroshot(args.run[0], task, **options)]
         for run, result in zip(args.run, results):
-            rows.append((task, run, result["mean_return"], result["std_return"], result["eval_episodes"],
-                         result.get("success_rate")))
+            if result is not None:
+                rows.append((task, run, result["mean_return"], result["std_return"], result["eval_episodes"],
+                             result.get("success_rate")))
     with_success = any(row[5] is not None for row in rows)
     print(f"{'task':<36} " + (f"{'run':<32} " if group else "") + f"{'return':>9} {'std':>8} {'episodes':>9}"
           + (f" {'success':>8}" if with_success else ""))
@@ -37,6 +43,13 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
         print(f"{task:<36} " + (f"{run:<32} " if group else "") + f"{mean:9.1f} {std:8.1f} {n:9d}"
               + (f" {success:8.2f}" if success is not None else ""))
     return 0
+
+
+def _existing_result(run, config, task: str, snapshot: int | None) -> bool:
+    from dvfb.workflows.zeroshot import result_path
+
+    frames = config.frames if snapshot is None else snapshot
+    return result_path(run, task, frames, max(config.frames, frames)).exists()
 
 
 def register(sub, agent: str) -> None:
@@ -62,6 +75,9 @@ def register(sub, agent: str) -> None:
     p.add_argument("--reward-fn", default=None, help="module:function or file.py:function mapping next_obs (N, O) to rewards")
     p.add_argument("--goal", default=None, help="goal observation: a .npy file or comma-separated numbers")
     p.add_argument("--overwrite", action="store_true", help="replace an existing result file")
+    p.add_argument("--skip-existing", action="store_true",
+                   help="leave out the runs that already have a task's result (a group evaluates the others) "
+                        "instead of stopping with an error")
     progress_flag(p)
     add_protocol_arguments(p, "inference")
     p.set_defaults(func=cmd_zeroshot)

@@ -195,13 +195,15 @@ def zeroshot_group(run_paths: list[str | Path], task: str, *, snapshot: int | No
                    inference: dict | None = None, seed: int | None = None, skill_source: str = "rewards",
                    reward_fn: str | Callable | None = None, goal: np.ndarray | None = None, overwrite: bool = False,
                    device: str | None = None, progress: bool | None = None,
-                   dataset: str | Path | None = None) -> list[dict]:
+                   dataset: str | Path | None = None, skip_existing: bool = False) -> list[dict | None]:
     """:func:`zeroshot` of every member of a group (docs/members.md) in one pass: each member's
     skill by its own protocol and random streams, as its separate zero-shot finds it; then the
     evaluation episodes of all members in lockstep, their actions from one batched forward of the
     stacked actors. Each member's result goes to its own run, in :func:`zeroshot`'s format.
 
-    The runs must be one method with one configuration (seeds aside) and have the snapshot.
+    The runs must be one method with one configuration (seeds aside) and have the snapshot. With
+    ``skip_existing``, the members that already have the task's result are left out (their
+    entry of the returned list is None) instead of being an error.
     """
     if not run_paths:
         raise ConfigError("a group zero-shot needs at least one run")
@@ -213,16 +215,23 @@ def zeroshot_group(run_paths: list[str | Path], task: str, *, snapshot: int | No
         evaluation_tasks(config, [task])
         members.append((run, config, protocol))
     check_one_method([(run, config) for run, config, _protocol in members])
-    loaded = []
+    loaded, skipped = [], []
     for run, config, protocol in members:
         agent, snap = load_pretrained_agent(run, config, snapshot, device)
         out = result_path(run, task, snap, max(config.frames, snap))
         if out.exists() and not overwrite:
+            if skip_existing:
+                skipped.append(run)
+                continue
             raise RunDirError(f"{out} exists; pass --overwrite to replace it")
         if goal is not None and skill_source == "goal":
             check_goal(goal, agent.goal_widths(), config.domain)
         check_writable(out.parent if out.parent.exists() else run.path)
         loaded.append((agent, snap, out))
+    everyone = members
+    members = [m for m in members if m[0] not in skipped]
+    if not members:
+        return [None] * len(everyone)
     if len({snap for _a, snap, _o in loaded}) != 1:
         raise ConfigError("the members' snapshots are of different frames; pass --snapshot")
     started = time.time()
@@ -252,7 +261,8 @@ def zeroshot_group(run_paths: list[str | Path], task: str, *, snapshot: int | No
             members, loaded, skills, infos, seeds, evaluations):
         result = _result(task, config, member_seed, snap, protocol, skill_source, agent, info, z, evaluation, started)
         results.append(_write_result(out, {**result, "group": [str(r.path) for r, _c, _p in members]}))
-    return results
+    by_run = dict(zip([run for run, _c, _p in members], results))
+    return [by_run.get(run) for run, _c, _p in everyone]
 
 
 def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, protocol: ZeroShotProtocol,
