@@ -304,20 +304,46 @@ def test_slurm_sweep_equals_local_and_reports_over_seeds(tmp_path, slurm_cluster
 
 def test_a_cells_seeds_run_as_one_group_job_on_slurm_as_locally(tmp_path, slurm_cluster, capsys):  # noqa: F811
     # --seeds-per-job 2: each cell's two seeds pre-train in one process and one SLURM job
-    # (dvfb pretrain --seeds, docs/members.md); each seed still has its own run and zero-shot unit.
+    # (dvfb pretrain --seeds, docs/members.md), then zero-shot as one group in one job; each seed
+    # still has its own run directory and results.
     group = ["--seeds-per-job", "2"]
     local_dir, slurm_dir = tmp_path / "local", tmp_path / "slurm"
     assert main(sweep_args(local_dir, "local", agents=("fb",), extra=["--workers", "2", *group])) == 0
     assert main(sweep_args(slurm_dir, "slurm", agents=("fb",), extra=group)) == 0
-    assert "slurm: 3 job(s) submitted" in capsys.readouterr().out  # one pre-training, two zero-shots
+    assert "slurm: 2 job(s) submitted" in capsys.readouterr().out  # one pre-training, one zero-shot
     jobs = sweep_jobs(slurm_dir)
-    assert "fb_walker_s0/pretrain" in jobs and "fb_walker_s1/pretrain" not in jobs
+    assert {"fb_walker_s0/pretrain", "fb_walker_s0/zeroshot"} <= set(jobs)
+    assert "fb_walker_s1/pretrain" not in jobs and "fb_walker_s1/zeroshot" not in jobs
     log = (slurm_dir / "logs" / "fb_walker_s0" / "pretrain.log").read_text()
     assert "--seeds 0,1" in log and str(slurm_dir / "runs" / "fb_walker_s{seed}") in log
+    log = (slurm_dir / "logs" / "fb_walker_s0" / "zeroshot.log").read_text()
+    runs = [str(slurm_dir / "runs" / f"fb_walker_s{seed}") for seed in (0, 1)]
+    assert f"zeroshot {runs[0]} {runs[1]} --task" in log and "--skip-existing" in log
     for cell in ("fb_walker_s0", "fb_walker_s1"):
         assert_same_results(local_dir, slurm_dir, cell)
     assert main(["sweep", "status", str(slurm_dir)]) == 0
     assert "2 done (2 cells" in capsys.readouterr().out
+
+
+def test_a_groups_fine_tuning_runs_as_one_unit_and_each_seed_gets_its_own_run(tmp_path, capsys):
+    # --seeds-per-job 2 with a fine-tuning phase: one dvfb finetune process for both seeds, in the
+    # group leader's unit; each seed's run holds its own fine-tuning run.
+    sweep_dir = tmp_path / "ft"
+    finetune = ["--phases", "pretrain", "finetune", "--finetune-tasks", "walker_walk", "--finetune.frames", "400",
+                "--finetune.eval-every", "400", "--finetune.eval-episodes", "1", "--finetune.seed-frames", "300",
+                "--finetune.update-every", "4", "--seeds-per-job", "2"]
+    assert main(sweep_args(sweep_dir, "debug", agents=("fb",), extra=finetune)) == 0
+    runs = [sweep_dir / "runs" / f"fb_walker_s{seed}" for seed in (0, 1)]
+    for run in runs:
+        summary = json.loads((run / "finetune" / "walker_walk" / "finetune_summary.json").read_text())
+        assert summary["frames"] == 400
+    log = (sweep_dir / "logs" / "fb_walker_s0" / "finetune-walker_walk.log").read_text()
+    assert f"finetune {runs[0]} {runs[1]} --task walker_walk" in log
+    assert not (sweep_dir / "state" / "fb_walker_s1" / "finetune-walker_walk.json").exists()
+    capsys.readouterr()
+    assert main(["sweep", "status", str(sweep_dir)]) == 0
+    status = capsys.readouterr().out
+    assert [row.split()[:2] for row in status.splitlines()[1:-1]] == [["fb_walker_s0", "done"], ["fb_walker_s1", "done"]]
 
 
 def test_requeued_job_resumes_and_ends_equal_to_an_uninterrupted_run(tmp_path, slurm_cluster):  # noqa: F811

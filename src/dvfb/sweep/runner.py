@@ -159,15 +159,16 @@ def cell_status(sweep: SweepDir, config: SweepConfig, cell: Cell, jobs: dict[str
     units = units_of(config, cell)
     states = {u.name: read_state(sweep, u) or {} for u in units}
     leader = group_of(config, cell)[0]
-    if leader != cell:  # its pre-training runs in its group leader's unit (seeds_per_job)
-        states["pretrain"] = read_state(sweep, units_of(config, leader)[0]) or {}
+    if leader != cell:  # its phases run in its group leader's units (seeds_per_job)
+        states = {u.name: read_state(sweep, u) or {} for u in units_of(config, leader)}
     done = [is_done(sweep, config, u) for u in units]
     target = pretrain_target(config, cell)
     record = _last_train_record(sweep.run_path(cell))
     frames = target if done[0] else int(record.get("step", 0))
     live = {u.name: _alive(states[u.name], jobs) for u in units if states[u.name].get("state") == "running"}
-    queued = [u for u in units if jobs is not None and recorded.get(u.key) in jobs
-              and jobs[recorded[u.key]] != "RUNNING" and not is_done(sweep, config, u)]
+    keys = {u.name: u.key for u in units_of(config, leader)}  # where a unit's job is recorded
+    queued = [u for u in units if jobs is not None and recorded.get(keys[u.name]) in jobs
+              and jobs[recorded[keys[u.name]]] != "RUNNING" and not is_done(sweep, config, u)]
     failed = [u for u, d in zip(units, done) if not d and states[u.name].get("state") == "failed"]
     eta = ""
     if all(done):

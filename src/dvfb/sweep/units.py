@@ -123,12 +123,20 @@ def group_of(config: SweepConfig, cell: Cell) -> list[Cell]:
 
 def jobs_of(config: SweepConfig) -> list[tuple[Unit, list[Unit]]]:
     """What the executors run: each pre-training job (a cell's, or a group leader's for the group)
-    with the units that wait for it (the other phases of every cell of the group)."""
+    with the units that wait for it (its cell's other phases; a group's run as groups too, in
+    the leader's units)."""
     jobs = []
     for group in spec.job_groups(config) if config.seeds_per_job > 1 else [[c] for c in spec.cells(config)]:
-        first = units_of(config, group[0])[0]
-        jobs.append((first, [u for cell in group for u in units_of(config, cell)[1:]]))
+        units = units_of(config, group[0])
+        jobs.append((units[0], units[1:]))
     return jobs
+
+
+def grouped(config: SweepConfig, unit: Unit) -> list[Cell]:
+    """The cells a unit runs for: its group's, for a group leader's unit (docs/members.md); else
+    its own cell."""
+    group = group_of(config, unit.cell)
+    return group if group[0] == unit.cell else [unit.cell]
 
 
 def find_unit(config: SweepConfig, cell_name: str, unit_name: str) -> Unit:
@@ -163,11 +171,13 @@ def finetune_dir(sweep: SweepDir, cell: Cell, task: str) -> Path:
 
 
 def is_done(sweep: SweepDir, config: SweepConfig, unit: Unit) -> bool:
-    if unit.phase == "pretrain":  # a group leader's unit: every member's
-        return all(pretrain_done(sweep, config, cell) for cell in group_of(config, unit.cell))
+    """Whether the unit has nothing left to do; a group leader's unit: for every member."""
+    cells = grouped(config, unit)
+    if unit.phase == "pretrain":
+        return all(pretrain_done(sweep, config, cell) for cell in cells)
     if unit.phase == "zeroshot":
-        return not missing_zeroshot_tasks(sweep, config, unit.cell)
-    return (finetune_dir(sweep, unit.cell, unit.task) / "finetune_summary.json").is_file()
+        return not any(missing_zeroshot_tasks(sweep, config, cell) for cell in cells)
+    return all((finetune_dir(sweep, cell, unit.task) / "finetune_summary.json").is_file() for cell in cells)
 
 
 def _continue_flags(run_dir: Path) -> list[str]:
@@ -182,8 +192,8 @@ def command(sweep: SweepDir, config: SweepConfig, unit: Unit, torch_threads: int
     """The ``dvfb`` arguments that run (or continue) the unit; the unit must not be done."""
     cell = unit.cell
     run = sweep.run_path(cell)
-    group = group_of(config, cell) if unit.phase == "pretrain" else [cell]
-    if len(group) > 1:
+    group = grouped(config, unit)
+    if len(group) > 1 and unit.phase == "pretrain":
         # One process for the group's seeds (docs/members.md); it resumes when its members have
         # checkpoints (written together), and starts over when none has one yet.
         runs = [sweep.run_path(c) for c in group]
@@ -198,12 +208,19 @@ def command(sweep: SweepDir, config: SweepConfig, unit: Unit, torch_threads: int
         return ["pretrain", "--agent", cell.agent, "--domain", cell.domain, "--seed", str(cell.seed),
                 "--preset", config.preset, "--run-dir", str(run), "--no-progress",
                 "--torch-threads", str(torch_threads), *spec.pretrain_flags(cell), *_continue_flags(run)]
-    if not pretrain_done(sweep, config, cell):
-        raise UnitFailed(f"{unit.key}: the pre-training of {cell.name} has not finished")
+    for member in group:
+        if not pretrain_done(sweep, config, member):
+            raise UnitFailed(f"{unit.key}: the pre-training of {member.name} has not finished")
+    runs = [str(sweep.run_path(member)) for member in group]
     if unit.phase == "zeroshot":
-        return ["zeroshot", str(run), "--task", *missing_zeroshot_tasks(sweep, config, cell)]
-    return ["finetune", str(run), "--task", unit.task, "--no-progress",
-            *_continue_flags(finetune_dir(sweep, cell, unit.task))]
+        # A group evaluates together the members that lack a task's result (docs/members.md).
+        missing = [t for t in spec.zeroshot_tasks(config, cell)
+                   if any(t in missing_zeroshot_tasks(sweep, config, member) for member in group)]
+        return ["zeroshot", *runs, "--task", *missing, *(["--skip-existing"] if len(group) > 1 else [])]
+    flags = [_continue_flags(finetune_dir(sweep, member, unit.task)) for member in group]
+    # A group's members checkpoint together: one resumes, one starts over, the whole group does.
+    flag = ["--resume"] if ["--resume"] in flags else (["--overwrite"] if ["--overwrite"] in flags else [])
+    return ["finetune", *runs, "--task", unit.task, "--no-progress", *flag]
 
 
 def read_state(sweep: SweepDir, unit: Unit) -> dict | None:
