@@ -89,8 +89,9 @@ class SweepConfig:
     workers: int = param(0, "local: phases that run at once; 0 = the number of cores.")
     torch_threads: int = param(0, "torch threads per phase; 0 = cores / workers (local), the job's CPUs (slurm), "
                                   "torch's default (debug).")
-    seeds_per_job: int = param(1, "Seeds of a cell whose pre-training runs as one group, in one process and one "
-                                  "job (dvfb pretrain --seeds, docs/members.md); 1 = a process per seed.", at_least=1)
+    seeds_per_job: int = param(1, "Seeds of a cell that run as one group, each phase in one process and one job "
+                                  "(dvfb pretrain --seeds, then zero-shot and fine-tuning of the group's runs, "
+                                  "docs/members.md); 1 = a process per seed.", at_least=1)
     report: bool = param(True, "Write SWEEP/report (dvfb report, ± over seeds) when every cell is done.")
     slurm: SlurmConfig = field(default_factory=SlurmConfig, metadata={"help": "The slurm executor."})
 
@@ -332,7 +333,7 @@ def cells(config: SweepConfig) -> list[Cell]:
 
 
 def job_groups(config: SweepConfig) -> list[list[Cell]]:
-    """The cells whose pre-training runs as one group (``seeds_per_job`` seeds of a cell that differ
+    """The cells that run as one group (``seeds_per_job`` seeds of a cell that differ
     only in their seed, in the sweep's seed order); the first of each is its leader."""
     groups: dict[tuple, list[list[Cell]]] = {}
     order: list[tuple] = []

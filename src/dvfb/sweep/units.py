@@ -12,6 +12,9 @@ commands of the README compute, and resumes the way a user would:
 * fine-tuning is done when ``finetune/<task>/finetune_summary.json`` exists, else it resumes or
   starts like pre-training.
 
+With ``seeds_per_job > 1`` the units of a group's leader run for every member of the group
+(:func:`grouped`); the other members' units are never run themselves.
+
 A finished unit is never run again, so a re-run rewrites nothing in a finished run.
 """
 
