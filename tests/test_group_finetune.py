@@ -216,6 +216,7 @@ def test_bad_group_fine_tunings_are_one_line_and_create_nothing(tmp_path, fb_gro
     cases = [
         ([*map(str, aps), "--task", MAZE, "--finetune.skill", "regressed"], "regressed fits each run's skill"),
         ([str(fb_group[0]), str(aps[0]), "--task", MAZE], "is not the same method and configuration"),
+        ([str(fb_group[0]), str(fb_group[0]), "--task", MAZE], "a run is listed twice"),
     ]
     for args, message in cases:
         done = _cli(*args, "--name", "bad", "--no-progress")
@@ -224,3 +225,14 @@ def test_bad_group_fine_tunings_are_one_line_and_create_nothing(tmp_path, fb_gro
         assert len(lines) == 1 and message in lines[0], done.stderr
     for path in [*aps, *fb_group]:
         assert not (path / "finetune" / "bad").exists()
+
+
+def test_a_member_in_use_is_refused_and_no_members_directory_is_left(fb_group):
+    from dvfb.errors import RunDirError
+    from dvfb.runs import RunLock
+
+    busy = fb_group[1] / "finetune" / "busy"
+    with RunLock(busy):  # another writer holds member 1's fine-tuning run
+        with pytest.raises(RunDirError, match="in use"):
+            finetune_group(fb_group, MAZE, name="busy", inference=_fast("fb"), finetune=dict(SCHEDULE), progress=False)
+    assert not (fb_group[0] / "finetune" / "busy").exists()

@@ -146,6 +146,8 @@ def finetune_group(run_paths: list[str | Path], task: str, *, snapshot: int | No
         raise ConfigError("--resume and --overwrite contradict each other: pass one of them")
     if not run_paths:
         raise ConfigError("a group fine-tuning needs at least one run")
+    if len({Path(p).resolve() for p in run_paths}) != len(run_paths):
+        raise ConfigError("a run is listed twice: the members of a group are distinct runs")
     members = [_prepared(p, task, snapshot, inference, finetune, seed, name, resume, device) for p in run_paths]
     check_one_method([(m.run, m.config) for m in members])
     first = members[0]
@@ -159,9 +161,9 @@ def finetune_group(run_paths: list[str | Path], task: str, *, snapshot: int | No
                                   "fine-tunes its members with one protocol")
     locks = [RunLock(m.path) for m in members]
     with contextlib.ExitStack() as stack:
-        for lock in locks:
-            stack.enter_context(lock)
         try:
+            for lock in locks:  # a member in use: the directories locked so far are removed again
+                stack.enter_context(lock)
             sessions = [FinetuneSession(m, resume, overwrite) for m in members]
             if all(s.finished for s in sessions):
                 return [s.run for s in sessions]

@@ -177,9 +177,9 @@ def pretrain_group(config: PretrainConfig, seeds: list[int], run_paths: list[str
     dataset = _read_dataset(base, dataset_info, parts[0][2], device, progress)
     locks = [RunLock(p) for p in paths]
     with contextlib.ExitStack() as stack:
-        for lock in locks:
-            stack.enter_context(lock)
         try:
+            for lock in locks:  # a member in use: the directories locked so far are removed again
+                stack.enter_context(lock)
             return _run_group(configs, paths, parts, resume, overwrite, command, device, dataset, dataset_info,
                               progress, what)
         except BaseException:
