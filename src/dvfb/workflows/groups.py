@@ -39,7 +39,7 @@ class MemberGroup:
     then ends the command non-zero.
     """
 
-    def __init__(self, sessions: list, learner, what: str, phase: str, act: Callable):
+    def __init__(self, sessions: list, learner, what: str, phase: str, act: Callable, log_episodes: bool = False):
         self.sessions, self.learner, self.what, self.phase = sessions, learner, what, phase
         self.live = list(sessions)
         self.stopped: list[str] = []
@@ -47,9 +47,10 @@ class MemberGroup:
         self.window = GroupWindow(lambda: list(self.live), self.stop, learner.nonfinite_hint)
         for session in sessions:
             session.window = self.window.member_window(session)
-        self.ended: list = []  # members whose episode ended this step, logged after the step's records
+        # With log_episodes: the members whose episode ended this step (:meth:`ended_episodes`).
+        self.ended: list = []
         self.source = GroupSource(lambda: [s.collector for s in self.live], act, self._action_fault,
-                                  self.ended.append)
+                                  self.ended.append if log_episodes else None)
 
     def _bind(self) -> None:
         for i, session in enumerate(self.live):

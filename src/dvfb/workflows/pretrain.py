@@ -204,7 +204,8 @@ def _run_group(configs, paths, parts, resume, overwrite, command, device, datase
                               + "): a group resumes in lockstep; resume them alone")
     base = configs[0]
     group = MemberGroup(sessions, stack_agents([agent for _rng, _env, agent, _length, _columns in parts]), what,
-                        "pre-training", lambda obs, skill: group.learner.act_members(obs, skill, explore=True))
+                        "pre-training", lambda obs, skill: group.learner.act_members(obs, skill, explore=True),
+                        log_episodes=True)
 
     def after_step(t: int) -> None:
         for session in list(group.live):
