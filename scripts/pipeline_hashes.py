@@ -48,6 +48,8 @@ from dvfb.protocols import protocols_of  # noqa: E402
 
 DOMAIN = "point_mass_maze"
 TASK = "point_mass_maze_reach_top_left"
+# The temporary root of the runs (and its resolved form), replaced in every hashed string.
+ROOTS: list[str] = []
 # Fields that measure time, not what was computed.
 TIMING = {"wall_clock_s", "fps", "frames_per_s", "resumed_from"}
 COMMON = ["--domain", DOMAIN, "--frames", "1500", "--seed-frames", "500", "--update-every", "4",
@@ -104,6 +106,11 @@ def _feed(digest, value) -> None:
         for item in value:
             _feed(digest, item)
         digest.update(b"]")
+    elif isinstance(value, str):
+        # Run directories live under a fresh temporary root: hash their paths relative to it.
+        for root in ROOTS:
+            value = value.replace(root, "<root>")
+        digest.update(repr(value).encode())
     else:
         digest.update(repr(value).encode())
 
@@ -197,6 +204,7 @@ def main_(argv: list[str] | None = None) -> int:
     agents = args.agents.split(",") if args.agents else list(agent_names())
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="dvfb_pipeline_"))
     root.mkdir(parents=True, exist_ok=True)
+    ROOTS[:] = sorted({str(root), str(root.resolve())}, key=len, reverse=True)
     reward_fn = root / "reward.py"
     reward_fn.write_text(REWARD_FN)
     hashes: dict[str, str] = {}
