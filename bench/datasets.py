@@ -33,7 +33,8 @@ import numpy as np
 import torch
 
 from dvfb.config import merge
-from dvfb.datasets import export_run, read_dataset, relabel
+from dvfb.data.datasets import read_dataset, relabel
+from dvfb.workflows.datasets import export_run
 from dvfb.runs import latest_checkpoint
 from dvfb.workflows.config import preset_config
 from dvfb.workflows.pretrain import pretrain
@@ -70,13 +71,13 @@ def main() -> None:
                    {"fb": {"z_dim": 8, "hidden_dim": 32, "feature_dim": 16, "backward_hidden_dim": 32,
                            "batch_size": 32},
                     "replay": {"record_physics": True}})
-    _, pretrain_s = timed(lambda i: pretrain(config, run, progress=False), 1)
+    _, pretrain_s = timed(lambda i: pretrain(config, run, progress=None), 1)
 
     k = args.repeats
-    info, export_s = timed(lambda i: export_run(run, root / f"dataset{i}", progress=False), k)
+    info, export_s = timed(lambda i: export_run(run, root / f"dataset{i}", progress=None), k)
     n = info.transitions
     _, relabel_s = timed(lambda i: relabel(root / "dataset0", "walker_run", root / f"dataset_walker_run{i}",
-                                           progress=False), k)
+                                           progress=None), k)
     (buffer, _), read_s = timed(lambda i: read_dataset(root / "dataset0"), k)
     (buffer_physics, _), read_physics_s = timed(lambda i: read_dataset(root / "dataset0", columns=("physics",)), k)
 

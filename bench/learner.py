@@ -81,9 +81,9 @@ from torch.utils.flop_counter import FlopCounterMode
 from dvfb.agents import agent_names, get_spec, make_agent
 from dvfb.execution import PerfConfig, bf16_matmul_is_fast
 from dvfb.config import merge, replace, to_dict
-from dvfb.replay import ReplayBuffer
+from dvfb.data import ReplayBuffer
 from dvfb.runs import read_metrics
-from dvfb.training.monitor import MetricWindow, check_action
+from dvfb.training.metrics import MetricWindow, check_action
 from dvfb.workflows.config import PretrainConfig, agent_sections, preset_config, run_config_from_dict
 
 HERE = Path(__file__).resolve().parent

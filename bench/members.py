@@ -32,7 +32,7 @@ import torch
 
 from dvfb.agents import make_agent
 from dvfb.nets.members import stack_agents
-from dvfb.replay import Batch
+from dvfb.data import Batch
 
 MEMBER_COUNTS = (1, 2, 5, 10)
 

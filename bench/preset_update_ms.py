@@ -15,7 +15,7 @@ import time
 import torch
 
 from dvfb.agents import agent_names, make_agent
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.workflows.config import agent_sections, preset_config
 
 O, U = 24, 6

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dvfb.replay import LoaderShards, ReplayBuffer
+from dvfb.data import LoaderShards, ReplayBuffer
 
 OBS, ACT, Z, LENGTH = 24, 6, 50, 1000
 

@@ -17,7 +17,7 @@ from dvfb.agents.ddpg import DDPGConfig
 from dvfb.agents.registry import get_spec
 from dvfb.nets import RunningMeanStd
 from dvfb.protocols.urlb import DDPGFinetuneConfig, DDPGFinetuner
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.cesd import CeSDReward, partitioned_apt_reward
 
 OBS, ACT, K = 5, 3, 4

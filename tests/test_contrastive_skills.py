@@ -12,7 +12,7 @@ from torch.testing import assert_close
 from dvfb.agents.becl import BeCLAgent, BeCLConfig
 from dvfb.agents.comsd import ComSDAgent, ComSDConfig
 from dvfb.agents.ddpg import DDPGConfig
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.becl import BeCLReward, becl_contrastive_loss
 from dvfb.rewards.comsd import ComSDReward, diversity_reward, skill_weight
 

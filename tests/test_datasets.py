@@ -16,9 +16,10 @@ import torch
 
 from dvfb.cli import main
 from dvfb.envs._common import set_mujoco_state
-from dvfb.datasets import DatasetInfo, export_run, load_episode, read_dataset, read_info, relabel, write_dataset
+from dvfb.data.datasets import DatasetInfo, load_episode, read_dataset, read_info, relabel, write_dataset
+from dvfb.workflows.datasets import export_run
 from dvfb.errors import CheckpointError, ConfigError
-from dvfb.replay import Column, ReplayBuffer
+from dvfb.data import Column, ReplayBuffer
 from dvfb.runs import load_checkpoint
 
 MAZE = "point_mass_maze_reach_top_left"
@@ -49,14 +50,14 @@ def run(tmp_path_factory) -> Path:
     pretrain(path, 1500, "--replay.record-physics", "true")
     state = load_checkpoint(path)
     assert state["step"] == 1500 and "episode_state" in state  # the checkpoint that recording adds
-    assert export_run(path, path / "dataset_1500", progress=False).files == ["episode_000000_1000.npz"]
+    assert export_run(path, path / "dataset_1500", progress=None).files == ["episode_000000_1000.npz"]
     pretrain(path, 2000, "--replay.record-physics", "true", "--resume")
     return path
 
 
 @pytest.fixture(scope="module")
 def dataset(run: Path) -> Path:
-    info = export_run(run, progress=False)
+    info = export_run(run, progress=None)
     assert info.files == ["episode_000000_1000.npz", "episode_000001_1000.npz"]
     return run / "dataset"
 
@@ -161,7 +162,7 @@ def test_export_then_read_gives_the_runs_replay(run: Path, dataset: Path):
 
 def test_relabel_with_the_pretraining_task_gives_the_recorded_rewards(dataset: Path, tmp_path: Path):
     """Across the resumed mid-episode checkpoint too: the physics rows line up with the rewards."""
-    out = relabel(dataset, MAZE, tmp_path / "same", progress=False)
+    out = relabel(dataset, MAZE, tmp_path / "same", progress=None)
     assert out.task == MAZE and out.relabelled_from == str(dataset.resolve())
     for name in out.files:
         a, b = load_episode(dataset / "buffer" / name, out), load_episode(tmp_path / "same" / "buffer" / name, out)
@@ -198,7 +199,7 @@ def _write(tmp_path: Path, env, arrays) -> Path:
                        action_dim=spec.action_dim, physics_width=env.physics_width,
                        physics_layout=[list(p) for p in env.physics_layout], episode_length=spec.episode_length,
                        episodes=1, transitions=len(arrays["reward"]) - 1, files=[])
-    write_dataset(tmp_path / "data", info, [(0, arrays)], progress=False)
+    write_dataset(tmp_path / "data", info, [(0, arrays)], progress=None)
     return tmp_path / "data"
 
 
@@ -215,7 +216,7 @@ def test_relabelled_rewards_are_the_environments_bit_for_bit(task: str, other: s
     same actions (whose physics stays the same, bit for bit)."""
     source, arrays, start = _roll(task, 60)
     data = _write(tmp_path, source, arrays)
-    same = relabel(data, task, tmp_path / "same", progress=False)
+    same = relabel(data, task, tmp_path / "same", progress=None)
     reward = load_episode(tmp_path / "same" / "buffer" / same.files[0], same)["reward"]
     assert reward.tobytes() == arrays["reward"].tobytes()
 
@@ -232,7 +233,7 @@ def test_relabelled_rewards_are_the_environments_bit_for_bit(task: str, other: s
         _, _, _, _, info = env.step(arrays["action"][t])
         assert np.array_equal(env.physics_state(), arrays["physics"][t])
         expected.append(info["task_reward"])
-    relabelled = relabel(data, other, tmp_path / "other", progress=False)
+    relabelled = relabel(data, other, tmp_path / "other", progress=None)
     reward = load_episode(tmp_path / "other" / "buffer" / relabelled.files[0], relabelled)["reward"]
     assert reward.tobytes() == np.asarray(expected, np.float32)[:, None].tobytes()
     assert not np.array_equal(reward, arrays["reward"])

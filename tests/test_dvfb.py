@@ -14,7 +14,7 @@ from dvfb.agents.fb import BACKWARD_INPUTS, FBAgent, FBConfig
 from dvfb.rewards.contrastive import contrastive_entropy_reward, nce_loss
 from dvfb.rewards.rnd import RNDReward
 from dvfb.nets import sample_z_prior, training_action
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from tiny import ACT, D, H, OBS, tiny_exploration
 from tiny import tiny_config as shared_tiny_config
 

@@ -23,7 +23,7 @@ from dvfb.agents.fb import (
     offdiag_mean,
 )
 from dvfb.nets import project_to_sphere, sample_z_prior, skill_values, training_action
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from tiny import ACT, D, OBS, tiny_config, tiny_exploration
 
 

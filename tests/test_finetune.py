@@ -17,7 +17,7 @@ from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig
 from dvfb.agents.fb import FBAgent, FBConfig
 from dvfb.protocols.dual_value import DualValueFinetuner, FinetuneConfig
 from dvfb.nets import RunningMeanStd, project_to_sphere
-from dvfb.replay import Batch
+from dvfb.data import Batch
 
 
 OBS, ACT, D, H, E = 5, 3, 8, 32, 16

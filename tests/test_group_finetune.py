@@ -5,7 +5,6 @@ group resumes exactly; a member that goes non-finite stops alone; and bad groups
 
 from __future__ import annotations
 
-import copy
 import json
 import subprocess
 import sys
@@ -17,7 +16,7 @@ from dvfb.agents import agent_names, get_spec
 from dvfb.errors import NonFiniteLossError
 from dvfb.nets.members import member_slice, stack_agents
 from dvfb.protocols import finetuner_class
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.runs import RunDir, load_checkpoint, save_checkpoint
 from dvfb.workflows.finetune import finetune, finetune_group
 from dvfb.workflows.pretrain import pretrain_group

@@ -14,12 +14,12 @@ import torch
 from dvfb import envs
 from dvfb.errors import NonFiniteLossError
 from dvfb.nets.members import drop_members, member_training_state, stack_agents
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.runs import RunDir, load_checkpoint, load_snapshot, save_checkpoint
-from dvfb.training.monitor import GroupWindow
+from dvfb.training.metrics import GroupWindow
 from dvfb.workflows.pretrain import pretrain, pretrain_group
 from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
-from tiny import filled_replay, tiny_run_config
+from tiny import tiny_run_config
 
 SEEDS = [0, 1]
 
@@ -169,7 +169,7 @@ def test_a_group_refuses_an_existing_member_directory_before_creating_any(tmp_pa
 
 
 def test_a_group_that_does_not_fit_is_refused_before_anything_is_built(tmp_path):
-    from dvfb.replay import ReplayBuffer
+    from dvfb.data import ReplayBuffer
     from dvfb.workflows.resources import available_memory_bytes
 
     # A replay that fits once but not twice: the estimate covers every member.

@@ -30,7 +30,7 @@ from dvfb.nets import (
     soft_update_,
     training_action,
 )
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from tiny import ACT, D, E, H, OBS, tiny_config
 
 

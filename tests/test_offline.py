@@ -12,7 +12,7 @@ import torch
 
 from dvfb.analysis.common import method_name
 from dvfb.cli import main
-from dvfb.datasets import export_run
+from dvfb.workflows.datasets import export_run
 from dvfb.runs import load_checkpoint, load_snapshot
 
 TINY_FB = ["--fb.z-dim", "8", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
@@ -29,7 +29,7 @@ def dataset(tmp_path_factory) -> Path:
     assert main(["pretrain", "--agent", "fb", *COMMON, "--seed-frames", "500", "--update-every", "4",
                  "--checkpoint-every", "1000", "--frames", "2000", "--run-dir", str(run),
                  "--replay.record-physics", "true", *TINY_FB]) == 0
-    export_run(run, root / "maze_data", progress=False)
+    export_run(run, root / "maze_data", progress=None)
     return root / "maze_data"
 
 

@@ -144,7 +144,7 @@ def test_urlb_fine_tuning_skill_modes():
         finetuner("diayn", skill="regressed")
 
     agent, regressed = finetuner("aps", skill="regressed", regress_after=100, regress_samples=64)
-    from dvfb.replay import ReplayBuffer
+    from dvfb.data import ReplayBuffer
 
     rng = np.random.default_rng(0)
     replay = ReplayBuffer(1000, 4, 2, agent.skill_dim)  # dense random rewards: a direction to find

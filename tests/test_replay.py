@@ -1,4 +1,4 @@
-"""Tests for dvfb.replay (docs/methods.md §6; section 13 invariant 30)."""
+"""Tests for dvfb.data.buffer (docs/methods.md §6; section 13 invariant 30)."""
 
 import io
 import re
@@ -8,9 +8,9 @@ import pytest
 import torch
 from scipy import stats
 
-import dvfb.replay as replay_module
+import dvfb.data.buffer as replay_module
 from dvfb.errors import CheckpointError, ConfigError
-from dvfb.replay import ReplayBuffer
+from dvfb.data import ReplayBuffer
 
 OBS_DIM, ACTION_DIM, Z_DIM = 3, 2, 2
 

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from dvfb.agents.registry import agent_names
-from dvfb.replay import LoaderShards, ReplayBuffer
+from dvfb.data import LoaderShards, ReplayBuffer
 from dvfb.workflows.config import preset_config
 
 OBS, ACT = 3, 2

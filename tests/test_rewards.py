@@ -10,7 +10,7 @@ from torch.nn import functional as F_nn
 
 from dvfb.errors import ConfigError
 from dvfb.nets import RunningMeanStd
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.disagreement import DisagreementConfig, DisagreementReward
 from dvfb.rewards.icm import ICMAPTConfig, ICMAPTReward
 from dvfb.rewards.knn import KNNConfig, ParticleEntropy, nearest_distances, particle_entropy

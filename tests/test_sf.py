@@ -12,7 +12,7 @@ from dvfb.agents.sf import PAPER_NAMES, SFAgent, SFConfig, regress_task_vector
 from dvfb.config import merge
 from dvfb.nets.features import FEATURE_LEARNERS
 from dvfb.protocols import protocols_of
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from tests.tiny import ACT, D, E as E_, H, OBS, filled_replay, tiny_run_config
 
 N = 6

@@ -22,9 +22,9 @@ import torch
 from dvfb.agents.fb import FBAgent
 from dvfb.cli import main
 from dvfb.errors import NonFiniteLossError
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.runs import RunDir, latest_checkpoint, load_checkpoint, load_snapshot, save_checkpoint
-from dvfb.training.monitor import MetricWindow
+from dvfb.training.metrics import MetricWindow
 from tiny import OBS, ACT, tiny_config
 
 TINY = ["--fb.z-dim", "8", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",

@@ -34,7 +34,7 @@ from dvfb.rewards.contrastive import contrastive_entropy_reward
 from dvfb.execution import NetRunner, PerfConfig
 from dvfb.errors import ConfigError
 from dvfb.nets import TwinHead
-from dvfb.replay import Batch, ReplayBuffer
+from dvfb.data import Batch, ReplayBuffer
 
 OBS, ACT, D, H, E, HB = 7, 3, 8, 24, 12, 20
 
@@ -520,7 +520,7 @@ def test_sync_detector_detects_a_sync(no_host_sync):
     def syncing_fb_losses(*args):
         losses = original(*args)
         losses["fb_loss"].item()  # called from this test file: allowed
-        from dvfb.training.monitor import MetricWindow
+        from dvfb.training.metrics import MetricWindow
         window = MetricWindow()
         window.add(0, {"x": losses["fb_loss"]})
         window.flush()  # .cpu() from dvfb code: caught

@@ -17,7 +17,7 @@ from dvfb.agents.ddpg import DDPGConfig
 from dvfb.agents.diayn import DIAYNAgent
 from dvfb.agents.registry import get_spec
 from dvfb.agents.smm import SMMAgent
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.aps import APSConfig, APSReward
 from dvfb.rewards.diayn import DIAYNConfig, DIAYNReward
 from dvfb.rewards.knn import KNNConfig

@@ -63,7 +63,7 @@ def filled_replay(agent, steps: int = 400, seed: int = 0):
     import numpy as np
 
     from dvfb import envs
-    from dvfb.replay import ReplayBuffer
+    from dvfb.data import ReplayBuffer
 
     rng = np.random.default_rng(seed)
     env = envs.make("point_mass_maze_reach_top_left", seed=seed)

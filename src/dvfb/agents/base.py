@@ -30,7 +30,7 @@ from torch import nn
 
 from dvfb.errors import ConfigError
 from dvfb.nets import ACTION_EPS, HostActor, rollout_action
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.skills import NO_SKILL, SkillSpec
 
 

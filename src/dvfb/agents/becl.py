@@ -12,7 +12,7 @@ import torch
 from dvfb.agents.base import ReplayNeeds
 from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.becl import BeCLConfig, BeCLReward
 from dvfb.skills import SkillSpec
 

@@ -33,7 +33,7 @@ from dvfb.agents.registry import AgentSpec, register
 from dvfb.config import param
 from dvfb.nets import TwinHead, call_network, layernorm_tanh_layer, orthogonal_init_, training_action
 from dvfb.nets.members import member_mean, with_head_axis
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.cesd import CeSDReward
 from dvfb.rewards.contrastive import CICConfig
 from dvfb.skills import SkillSpec

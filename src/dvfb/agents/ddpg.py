@@ -23,7 +23,7 @@ from dvfb.execution import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.config import param
 from dvfb.nets import Actor, TwinCritic, adam, call_network, make_target, soft_update_, training_action, twin_td_loss
 from dvfb.nets.members import member_mean, minimise
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward
 from dvfb.skills import NO_SKILL, SkillSpec
 

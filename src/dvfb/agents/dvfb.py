@@ -21,7 +21,7 @@ from dvfb.agents.registry import AgentSpec, config_field, register
 from dvfb.config import param
 from dvfb.nets import TwinCritic, adam, make_target, twin_td_loss
 from dvfb.nets.members import member_mean, minimise, per_member
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.contrastive import CE_AGGREGATES, CE_NEIGHBOURS, CICConfig, CICReward, ContrastiveEntropyReward
 from dvfb.rewards.icm import ICMAPTConfig, ICMAPTReward
 from dvfb.rewards.proto import ProtoConfig, ProtoReward

@@ -42,7 +42,7 @@ from dvfb.nets import (
     training_action,
 )
 from dvfb.nets.members import member_mean, minimise, rand, row_products, with_head_axis, randperm, take_rows
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.skills import SkillSpec
 
 log = logging.getLogger(__name__)

@@ -30,7 +30,7 @@ from dvfb.execution import NetRunner, PerfConfig
 from dvfb.nets import Actor, ForwardMap, adam, make_target, project_to_sphere, sample_z_prior, skill_values, training_action
 from dvfb.nets.features import FEATURE_LEARNERS
 from dvfb.nets.members import minimise, rand, randperm, take_rows, with_head_axis
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.skills import SkillSpec
 
 log = logging.getLogger(__name__)

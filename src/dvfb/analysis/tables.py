@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from dvfb.analysis.common import Score, method_sort_key
-from dvfb.analysis.normalise import EXPERT_RETURNS, NORMALISERS, Normaliser, normalisers as available_normalisers
+from dvfb.analysis.normalise import NORMALISERS, Normaliser, normalisers as available_normalisers
 
 GAP = "–"
 SPREADS = ("std", "se")

@@ -10,9 +10,11 @@ from dvfb.cli.common import Formatter, progress_flag
 def cmd_export(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from dvfb.datasets import EPISODES_DIR, default_export_dir, describe, export_run
+    from dvfb.data.datasets import EPISODES_DIR, describe
+    from dvfb.training.progress import progress_bars
+    from dvfb.workflows.datasets import default_export_dir, export_run
 
-    info = export_run(args.run, args.out, progress=args.progress)
+    info = export_run(args.run, args.out, progress=progress_bars(args.progress))
     out = Path(args.out) if args.out else default_export_dir(args.run)
     print(describe(info, out) + f"; episode files in {out / EPISODES_DIR}")
     return 0
@@ -21,9 +23,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_relabel(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from dvfb.datasets import default_relabel_dir, describe, relabel
+    from dvfb.data.datasets import default_relabel_dir, describe, relabel
+    from dvfb.training.progress import progress_bars
 
-    info = relabel(args.dataset, args.task, args.out, progress=args.progress)
+    info = relabel(args.dataset, args.task, args.out, progress=progress_bars(args.progress))
     print(describe(info, args.out or default_relabel_dir(Path(args.dataset), args.task)))
     return 0
 

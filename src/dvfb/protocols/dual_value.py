@@ -20,7 +20,7 @@ from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner
 from dvfb.nets import (RunningMeanStd, TwinCritic, adam, freeze_, make_target, skill_values, soft_update_,
                        training_action, twin_td_loss)
 from dvfb.nets.members import member_mean, minimise, per_member
-from dvfb.replay import Batch
+from dvfb.data import Batch
 
 
 @dataclass

@@ -30,7 +30,7 @@ from dvfb.config import param
 from dvfb.errors import ConfigError
 from dvfb.nets import make_target
 from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner
-from dvfb.replay import Batch
+from dvfb.data import Batch
 
 CRITIC_INITS = ("trunk", "all", "none")
 FINETUNE_SKILLS = ("selected", "resample", "random_fixed", "prior_mean", "regressed")

@@ -23,7 +23,7 @@ import torch
 from dvfb.config import param
 from dvfb.errors import ConfigError
 from dvfb.protocols.base import ZeroShotProtocol, register_zero_shot
-from dvfb.replay import ReplayBuffer
+from dvfb.data import ReplayBuffer
 
 SELECTION_CANDIDATES = ("completed", "authors")
 

@@ -1,7 +1,7 @@
 """The one small interface every intrinsic-reward module implements (docs/methods.md, "Rewards").
 
 A reward module owns its networks, running statistics and optimiser. An agent calls it once per
-update with the sampled :class:`~dvfb.replay.Batch`:
+update with the sampled :class:`~dvfb.data.Batch`:
 
 * :meth:`IntrinsicReward.update` -- gradient step(s) of the module's own losses on the batch;
 * :meth:`IntrinsicReward.score` -- the reward of every row, ``(N, 1)``, without gradient;
@@ -28,7 +28,7 @@ from torch import nn
 
 from dvfb.nets import adam, call_network
 from dvfb.nets.members import minimise
-from dvfb.replay import Batch
+from dvfb.data import Batch
 
 Runner = Callable[..., torch.Tensor]
 

@@ -37,7 +37,7 @@ from torch.nn import functional as F_nn
 
 from dvfb.nets import RunningMeanStd, call_network, orthogonal_init_
 from dvfb.nets.members import member_mean, member_sum, per_member
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.base import Runner
 from dvfb.rewards.contrastive import CICConfig, CICReward
 from dvfb.rewards.knn import gather_rows

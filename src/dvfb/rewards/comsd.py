@@ -28,7 +28,7 @@ from dvfb.config import param
 from dvfb.errors import ConfigError
 from dvfb.nets import call_network
 from dvfb.nets.members import member_mean
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.base import Runner
 from dvfb.rewards.contrastive import CICReward, CICSkillConfig
 

@@ -23,7 +23,7 @@ from torch.nn import functional as F_nn
 from dvfb.config import param
 from dvfb.nets import call_network, mlp, orthogonal_init_
 from dvfb.nets.members import member_mean, row_products
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.knn import KNNConfig, ParticleEntropy
 

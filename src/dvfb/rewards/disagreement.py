@@ -17,7 +17,7 @@ from dvfb.config import param
 from dvfb.errors import ConfigError
 from dvfb.nets import TwinHead, call_network
 from dvfb.nets.members import member_mean
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.nets import call_network
 

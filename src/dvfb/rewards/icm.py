@@ -23,7 +23,7 @@ from torch import nn
 from dvfb.config import param
 from dvfb.nets import call_network, layernorm_tanh_layer, mlp, orthogonal_init_
 from dvfb.nets.members import member_mean
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.knn import NORMALISERS, KNNConfig, ParticleEntropy
 

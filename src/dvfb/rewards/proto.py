@@ -30,7 +30,7 @@ from dvfb.config import param
 from dvfb.errors import ConfigError
 from dvfb.nets import call_network, make_target, mlp, orthogonal_init_, soft_update_
 from dvfb.nets.members import MemberGenerators, member_mean, take_rows
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.knn import nearest_distances
 

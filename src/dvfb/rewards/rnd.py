@@ -16,7 +16,7 @@ from torch.nn import functional as F_nn
 
 from dvfb.nets import RunningMeanStd, call_network, freeze_, mlp, orthogonal_init_
 from dvfb.nets.members import member_mean, per_member
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 
 RND_INPUTS = ("next_obs", "obs")

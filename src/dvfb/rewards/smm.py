@@ -33,7 +33,7 @@ from torch import nn
 from dvfb.config import param
 from dvfb.nets import adam, call_network, mlp, orthogonal_init_
 from dvfb.nets.members import member_mean, randn
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.diayn import rowwise_cross_entropy
 from dvfb.skills import skill_index

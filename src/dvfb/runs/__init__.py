@@ -33,5 +33,5 @@ from dvfb.runs.checkpoints import (  # noqa: F401
     CHECKPOINT_SUFFIX, LATEST_POINTER, PRETRAIN_RESUME_KIND, latest_checkpoint, list_snapshots, load_checkpoint,
     load_snapshot, remove_orphaned_checkpoints, save_checkpoint, save_snapshot)
 from dvfb.runs.directory import CONFIG_FILE, LOCK_FILE, META_FILE, RunDir, RunLock, check_writable  # noqa: F401
-from dvfb.runs.files import read_json, write_json_atomic  # noqa: F401
+from dvfb.files import read_json, write_json_atomic  # noqa: F401
 from dvfb.runs.metrics import MetricsLogger, read_metrics  # noqa: F401

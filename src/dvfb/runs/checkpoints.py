@@ -13,7 +13,7 @@ import torch
 
 from dvfb.errors import CheckpointError
 from dvfb.runs.directory import _NAME_PATTERN, RunDir, _as_run_dir, _check_name
-from dvfb.runs.files import _atomic_write, _remove_stale_temp_files
+from dvfb.files import _atomic_write, _remove_stale_temp_files
 
 
 LATEST_POINTER = "latest"

@@ -19,7 +19,7 @@ import torch
 from dvfb import __version__
 from dvfb.config import load_json, save_json, to_dict
 from dvfb.errors import ConfigError, RunDirError
-from dvfb.runs.files import _TEMP_MARK, _atomic_write, read_json, write_json_atomic
+from dvfb.files import _TEMP_MARK, _atomic_write, read_json, write_json_atomic
 
 
 T = TypeVar("T")

@@ -12,7 +12,7 @@ from typing import IO, Any
 
 from dvfb.errors import RunDirError
 from dvfb.runs.directory import RunDir, _as_run_dir, _check_name
-from dvfb.runs.files import _atomic_write
+from dvfb.files import _atomic_write
 
 
 def _scalar(name: str, value: Any) -> float:

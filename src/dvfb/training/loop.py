@@ -12,7 +12,7 @@ Per step ``t``, whatever the method:
 3. the source steps: the environment takes the action and the transition (with its skill) is
    stored;
 4. ``after_step(t + 1)`` (logging, snapshots, evaluations), ``after_episode`` at an episode end, then
-   the resume checkpoints at episode ends and on signals (:class:`~dvfb.training.monitor.ResumeCheckpoints`).
+   the resume checkpoints at episode ends and on signals (:class:`~dvfb.training.checkpointing.ResumeCheckpoints`).
 
 The loop knows no method: it asks its source for transitions, the learner for updates and its hooks
 for the rest. A fixed dataset is another source (:class:`DatasetSource`: it steps nothing; the replay holds the data).
@@ -26,7 +26,9 @@ from typing import Callable
 import numpy as np
 import torch
 
-from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, check_action
+from dvfb.training.checkpointing import ResumeCheckpoints
+from dvfb.training.metrics import MetricWindow, check_action
+from dvfb.training.progress import Progress
 
 
 @dataclass

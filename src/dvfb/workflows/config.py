@@ -34,7 +34,7 @@ from dvfb.protocols import protocols_of
 from dvfb.protocols.zero_shot import InferenceConfig
 from dvfb.config import from_dict, merge, param, replace, require_updates
 from dvfb.errors import ConfigError
-from dvfb.replay import ReplaySamplingConfig
+from dvfb.data import ReplaySamplingConfig
 from dvfb.runs import read_json
 
 PRESETS = ("small", "paper", "code")

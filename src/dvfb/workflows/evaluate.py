@@ -56,7 +56,7 @@ def run_episodes(env, policy, episodes: int, progress=None) -> Evaluation:
 def evaluate_policy(agent: Agent, env, z: torch.Tensor | None, episodes: int, progress=None) -> Evaluation:
     """``episodes`` mean-action episodes with a fixed skill z (§8.3), or without one for methods
     that have none (``z = None``). ``progress.update(1)`` is called per step when given (a
-    :class:`~dvfb.training.monitor.Progress`)."""
+    :class:`~dvfb.training.progress.Progress`)."""
     return run_episodes(env, lambda obs: agent.act(obs, z, explore=False), episodes, progress)
 
 

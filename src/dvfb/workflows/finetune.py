@@ -30,7 +30,7 @@ from dvfb.agents import get_spec
 from dvfb.protocols import finetuner_class, zero_shot_protocol
 from dvfb.config import from_dict, merge, param, to_dict
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
-from dvfb.replay import ReplayBuffer
+from dvfb.data import ReplayBuffer
 from dvfb.runs import (
     MetricsLogger,
     RunDir,
@@ -44,7 +44,9 @@ from dvfb.runs import (
 )
 from dvfb.training import loop
 from dvfb.training.loop import EpisodeState, OnlineCollector
-from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, notify
+from dvfb.training.checkpointing import ResumeCheckpoints
+from dvfb.training.metrics import MetricWindow
+from dvfb.training.progress import Progress, notify
 from dvfb.training.seeding import check_resume_format, restore_rng_state, rng_state, run_generator, seed_everything
 from dvfb.workflows.resources import check_replay, check_task_in_domain
 from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run

@@ -13,9 +13,11 @@ from typing import Callable
 
 from dvfb.errors import ConfigError, NonFiniteLossError
 from dvfb.nets.members import drop_members
-from dvfb.replay import Batch
+from dvfb.data import Batch
 from dvfb.training.loop import GroupSource
-from dvfb.training.monitor import GroupWindow, checkpoint_note, notify
+from dvfb.training.checkpointing import checkpoint_note
+from dvfb.training.metrics import GroupWindow
+from dvfb.training.progress import notify
 from dvfb.workflows.config import agent_sections
 
 

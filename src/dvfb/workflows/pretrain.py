@@ -42,9 +42,9 @@ import torch
 from dvfb import envs
 from dvfb.agents import get_spec, make_agent
 from dvfb.config import replace, to_dict
-from dvfb.datasets import read_dataset, read_info
+from dvfb.data import read_dataset, read_info
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
-from dvfb.replay import ReplayBuffer, physics_columns
+from dvfb.data import ReplayBuffer, physics_columns
 from dvfb.runs import (
     PRETRAIN_RESUME_KIND,
     MetricsLogger,
@@ -59,7 +59,9 @@ from dvfb.runs import (
 )
 from dvfb.training import loop
 from dvfb.training.loop import DatasetSource, EpisodeState, OnlineCollector
-from dvfb.training.monitor import MetricWindow, Progress, ResumeCheckpoints, notify
+from dvfb.training.checkpointing import ResumeCheckpoints
+from dvfb.training.metrics import MetricWindow
+from dvfb.training.progress import Progress, notify, progress_bars
 from dvfb.training.seeding import check_resume_format, restore_rng_state, rng_state, run_generator, seed_everything
 from dvfb.workflows.resources import check_memory, check_replay, check_task_in_domain, learner_state_bytes, setup_torch
 from dvfb.nets.members import member_slice, member_training_state, stack_agents
@@ -297,7 +299,7 @@ def _read_dataset(config, dataset_info, agent, device, progress):
         raise ConfigError(f"--dataset {config.dataset} has observations of {dataset_info.obs_dim} and actions of "
                           f"{dataset_info.action_dim} values; {config.domain} has {obs_dim} and {action_dim}")
     # Read whole before the run directory exists: a bad file creates nothing.
-    dataset, _ = read_dataset(config.dataset, device, agent.skill_dim, progress=progress)
+    dataset, _ = read_dataset(config.dataset, device, agent.skill_dim, progress=progress_bars(progress))
     return dataset
 
 

@@ -7,7 +7,7 @@ import torch
 
 from dvfb import envs
 from dvfb.errors import ConfigError
-from dvfb.training.monitor import notify
+from dvfb.training.progress import notify
 from dvfb.workflows.config import PretrainConfig, resolve_device
 
 

@@ -30,10 +30,10 @@ from dvfb.config import merge, to_dict
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.protocols import SKILL_SOURCES, ZeroShotProtocol, zero_shot_protocol
 from dvfb.protocols.zero_shot import collect_inference_data, infer_task_vector
-from dvfb.datasets import read_dataset, read_info
-from dvfb.replay import PHYSICS_COLUMN, ReplayBuffer
+from dvfb.data import read_dataset, read_info
+from dvfb.data import PHYSICS_COLUMN, ReplayBuffer
 from dvfb.runs import RunDir, check_writable, load_checkpoint, write_json_atomic
-from dvfb.training.monitor import Progress
+from dvfb.training.progress import Progress
 from dvfb.training.seeding import seed_everything
 from dvfb.workflows.groups import check_one_method
 from dvfb.workflows.resources import evaluation_tasks

@@ -1,4 +1,7 @@
-"""Atomic files: writes that a crash cannot leave half done, and JSON in and out (docs in :mod:`dvfb.runs`)."""
+"""Atomic files: writes that a crash cannot leave half done, and JSON in and out.
+
+The run directory (:mod:`dvfb.runs`), datasets, reports and sweeps write through these.
+"""
 
 from __future__ import annotations
 

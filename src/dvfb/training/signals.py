@@ -1,0 +1,51 @@
+"""Stopping on a signal: SIGTERM and SIGINT ask a loop to checkpoint and stop (docs/methods.md,
+"Training loop")."""
+
+from __future__ import annotations
+
+import signal
+import threading
+from pathlib import Path
+
+from dvfb.errors import RunInterrupted
+
+
+class StopSignals:
+    """SIGTERM and SIGINT ask the loop to stop: it finishes its current step, writes a checkpoint and
+    raises :class:`~dvfb.errors.RunInterrupted`. A second SIGINT stops at once (KeyboardInterrupt).
+
+    Handlers are installed only in the main thread (signals cannot be caught elsewhere) and the
+    previous ones are restored on exit.
+    """
+
+    SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def _handle(self, signum, _frame) -> None:
+        if self.received is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.received = signum
+
+    def __enter__(self) -> StopSignals:
+        if threading.current_thread() is threading.main_thread():
+            for signum in self.SIGNALS:
+                self._previous[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.received).name if self.received is not None else ""
+
+
+def interrupted(stop: StopSignals, what: str, step: int, total: int, run_path: Path) -> RunInterrupted:
+    """The error a loop raises after checkpointing on a signal."""
+    return RunInterrupted(f"{stop.name} received: {what} stopped at step {step} of {total} with a checkpoint; "
+                          f"continue with the same command plus --resume (run {run_path})", stop.received)
