@@ -36,7 +36,7 @@ from dvfb.config import merge
 from dvfb.data.datasets import read_dataset, relabel
 from dvfb.workflows.datasets import export_run
 from dvfb.runs import latest_checkpoint
-from dvfb.workflows.config import preset_config
+from dvfb.runs.presets import preset_config
 from dvfb.workflows.pretrain import pretrain
 
 RESULTS = Path(__file__).resolve().parent / "results" / "datasets.json"

@@ -84,7 +84,8 @@ from dvfb.config import merge, replace, to_dict
 from dvfb.data import ReplayBuffer
 from dvfb.runs import read_metrics
 from dvfb.training.metrics import MetricWindow, check_action
-from dvfb.workflows.config import PretrainConfig, agent_sections, preset_config, run_config_from_dict
+from dvfb.runs.presets import preset_config
+from dvfb.runs.run_config import PretrainConfig, agent_sections, run_config_from_dict
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))

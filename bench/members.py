@@ -75,7 +75,7 @@ def time_group(agent_name, config, obs_dim, action_dim, n, filled_replay, device
 def separate_probe(spec: dict, filled_replay) -> dict:
     """In a subprocess: ms per update of one ordinary agent at ``spec['threads']`` threads
     (``filled_replay``: bench/learner.py's replay builder)."""
-    from dvfb.workflows.config import run_config_from_dict
+    from dvfb.runs.run_config import run_config_from_dict
     torch.set_num_threads(spec["threads"])
     device = torch.device(spec["device"])
     config = run_config_from_dict(spec["config"], "members probe")

@@ -16,7 +16,8 @@ import torch
 
 from dvfb.agents import agent_names, make_agent
 from dvfb.data import Batch
-from dvfb.workflows.config import agent_sections, preset_config
+from dvfb.runs.presets import preset_config
+from dvfb.runs.run_config import agent_sections
 
 O, U = 24, 6
 

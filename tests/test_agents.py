@@ -22,8 +22,9 @@ from dvfb.cli import main
 from dvfb.errors import CheckpointError
 from dvfb.protocols import finetuner_class, protocols_of
 from dvfb.runs import RunDir, load_snapshot
-from dvfb.workflows.snapshots import agent_from_snapshot, check_snapshot, load_pretrained_agent, snapshot_state
-from dvfb.workflows.config import load_run_config, run_config_class
+from dvfb.runs.layout import PretrainRun
+from dvfb.runs.snapshots import agent_from_snapshot, check_snapshot, load_pretrained_agent, snapshot_state
+from dvfb.runs.run_config import load_run_config, run_config_class
 from dvfb.workflows.finetune import finetune
 from dvfb.workflows.pretrain import pretrain
 from dvfb.workflows.zeroshot import zeroshot
@@ -223,7 +224,7 @@ def test_legacy_fb_run_still_loads(tmp_path):
     torch.save(state, snap)
     loaded = load_run_config(run / "config.json")
     assert not hasattr(loaded, "exploration") and type(loaded) is run_config_class("fb")
-    agent, frames = load_pretrained_agent(RunDir(run), loaded)
+    agent, frames = load_pretrained_agent(PretrainRun(run, loaded))
     assert frames == 1000 and agent.name == "fb"
 
 

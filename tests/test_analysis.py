@@ -23,15 +23,15 @@ import numpy as np
 import pytest
 
 from dvfb.analysis.common import AnalysisError, method_name
-from dvfb.analysis.exploration import coverage
+from dvfb.analysis.statistics import coverage
 from dvfb.analysis.report import make_report
-from dvfb.analysis.value import binned_spearman, quantile_bins, spearman
+from dvfb.analysis.statistics import binned_spearman, quantile_bins, spearman
 from dvfb.protocols.dual_value import FinetuneConfig
 from dvfb.cli import main
 from dvfb.config import merge, save_json
 from dvfb.runs import write_json_atomic
-from dvfb.workflows.config import preset_config
-from dvfb.workflows.finetune import finetune_run_config_class
+from dvfb.runs.presets import preset_config
+from dvfb.runs.run_config import finetune_run_config_class
 
 from test_workflows import FAST_INFERENCE, pretrain_args
 

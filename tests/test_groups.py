@@ -18,7 +18,8 @@ from dvfb.data import Batch
 from dvfb.runs import RunDir, load_checkpoint, load_snapshot, save_checkpoint
 from dvfb.training.metrics import GroupWindow
 from dvfb.workflows.pretrain import pretrain, pretrain_group
-from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
+from dvfb.runs.snapshots import load_pretrained_agent
+from dvfb.workflows.resources import open_run
 from tiny import tiny_run_config
 
 SEEDS = [0, 1]
@@ -40,9 +41,9 @@ def test_group_members_are_ordinary_runs_close_to_their_separate_runs(tmp_path):
     separate = tmp_path / "separate_s1"
     pretrain(dataclasses.replace(config, seed=1), separate, progress=False)
     # An ordinary run: its config has its own seed and its snapshot loads through the registry.
-    run, member_config = open_pretrained_run(paths[1])
-    assert member_config.seed == 1
-    agent, frames = load_pretrained_agent(run, member_config)
+    run = open_run(paths[1])
+    assert run.config.seed == 1
+    agent, frames = load_pretrained_agent(run)
     assert frames == 1000 and agent.members == 0
     # The uniform phase is the same data bit for bit; the policy's steps and 10 updates agree to
     # float32 rounding (the stacked products round differently from the separate run's).

@@ -17,7 +17,7 @@ from dvfb.errors import ConfigError
 from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS, protocols_of
 from dvfb.protocols.zero_shot import SkillSelection, SkillSelectionConfig, best_candidate
 from dvfb.skills import SkillSpec
-from dvfb.workflows.config import run_config_class
+from dvfb.runs.run_config import run_config_class
 from tiny import tiny_run_config
 
 MAZE = "point_mass_maze_reach_top_left"

@@ -16,7 +16,7 @@ import torch
 
 from dvfb.agents.registry import agent_names
 from dvfb.data import LoaderShards, ReplayBuffer
-from dvfb.workflows.config import preset_config
+from dvfb.runs.presets import preset_config
 
 OBS, ACT = 3, 2
 
@@ -197,7 +197,7 @@ def test_too_few_finished_episodes_fall_back_instead_of_failing():
 
 def test_the_sampling_section_is_checked_like_every_option():
     from dvfb.errors import ConfigError
-    from dvfb.workflows.config import run_config_from_dict
+    from dvfb.runs.run_config import run_config_from_dict
 
     with pytest.raises(ConfigError, match="sampling"):
         run_config_from_dict({"agent": "fb", "replay": {"sampling": "episodes"}})

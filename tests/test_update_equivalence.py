@@ -722,7 +722,7 @@ def test_errors_of_the_computation_are_not_swallowed(monkeypatch):
 def test_perf_options_reach_the_cli_config_and_resume_rules():
     from dvfb.cli import build_parser
     from dvfb.cli.common import pretrain_config as _pretrain_config
-    from dvfb.workflows.config import preset_config
+    from dvfb.runs.presets import preset_config
     from dvfb.workflows.pretrain import _check_resume_config
 
     args = build_parser().parse_args(["pretrain", "--perf.precision", "bf16", "--perf.compile", "true"])

@@ -48,7 +48,7 @@ def tiny_run_config(agent: str, **top_level):
     (episodes of 1000 cheap steps), seed frames 500 and an update every 4 steps."""
     from dvfb.agents import get_spec
     from dvfb.config import merge
-    from dvfb.workflows.config import preset_config
+    from dvfb.runs.presets import preset_config
 
     top = dict(domain="point_mass_maze", frames=1000, seed_frames=500, update_every=4, checkpoint_every=1000,
                log_every=250, torch_threads=1)

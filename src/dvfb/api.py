@@ -20,7 +20,8 @@ import torch
 
 from dvfb.agents import get_spec
 from dvfb.errors import ConfigError
-from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
+from dvfb.runs.snapshots import load_pretrained_agent
+from dvfb.workflows.resources import open_run
 
 
 class PretrainedAgent:
@@ -31,8 +32,9 @@ class PretrainedAgent:
     """
 
     def __init__(self, run_dir: str | Path, snapshot: int | None = None, device: str | None = None):
-        self.run, self.config = open_pretrained_run(run_dir)
-        self.agent, self.snapshot = load_pretrained_agent(self.run, self.config, snapshot, device)
+        self.run = open_run(run_dir)
+        self.config = self.run.config
+        self.agent, self.snapshot = load_pretrained_agent(self.run, snapshot, device)
         self.spec = get_spec(self.config.agent)
 
     @property

@@ -191,3 +191,15 @@ def requires_grad_disabled(params: list[nn.Parameter]):
     finally:
         for p in params:
             p.requires_grad_(True)
+
+
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def resolve_device(device: str) -> torch.device:
+    """A run's ``--device``: ``auto`` picks CUDA when torch sees it."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device 'cuda' was requested but torch sees no CUDA device; use --device cpu or auto")
+    return torch.device(device)

@@ -3,9 +3,8 @@
 * :func:`method_name` -- the one place that turns run configs into a method label, by asking the
   agent registry (``dvfb``, ``dvfb_wo_ce``, ``fb``, ``rnd``, ..., with ``_wo_svf`` / ``_wo_map``
   for the FB family's fine-tuning ablations).
-* :func:`discover_runs` -- finds pre-training runs (a ``config.json`` holding a
-  :class:`PretrainConfig`) and fine-tuning runs (a ``config.json`` holding a
-  :class:`FinetuneRunConfig`) under any mix of run directories and parent directories.
+* :func:`discover_runs` -- the pre-training and fine-tuning runs under any mix of run directories
+  and parent directories, found and read by the runs layer (:mod:`dvfb.runs.layout`).
 * :func:`collect_scores` -- one :class:`Score` per (method, seed, task) from the zero-shot result
   files, the last point of each fine-tuning curve, and random-policy files; two files claiming the
   same (method, seed, task) are an error that names both.
@@ -22,13 +21,9 @@ from pathlib import Path
 from typing import Any
 
 from dvfb.errors import DvfbError
-from dvfb.runs import read_json as read_json_file
+from dvfb.files import read_json as read_json_file
 
 log = logging.getLogger(__name__)
-
-# Sub-directories of a run that never hold other runs: not walked during discovery.
-_NOT_RUNS = {"snapshots", "checkpoints", "tb", "metrics", "results", "analysis", "zeroshot", "__pycache__"}
-
 
 class AnalysisError(DvfbError):
     """Bad input to a report or an analysis (no runs found, duplicate results, unreadable files)."""
@@ -91,8 +86,17 @@ def method_sort_key(name: str) -> tuple:
 
 @dataclass
 class PretrainRun:
-    path: Path
-    config: Any  # PretrainConfig
+    """A pre-training run of a report: its run directory (:class:`dvfb.runs.layout.PretrainRun`)."""
+
+    run: Any
+
+    @property
+    def path(self) -> Path:
+        return self.run.path
+
+    @property
+    def config(self) -> Any:
+        return self.run.config
 
     @property
     def method(self) -> str:
@@ -101,9 +105,19 @@ class PretrainRun:
 
 @dataclass
 class FinetuneRun:
-    path: Path
-    config: Any  # FinetuneRunConfig
+    """A fine-tuning run of a report (:class:`dvfb.runs.layout.FinetuneRun`) and its pre-training run
+    where it was found."""
+
+    run: Any
     parent: PretrainRun | None = None
+
+    @property
+    def path(self) -> Path:
+        return self.run.path
+
+    @property
+    def config(self) -> Any:
+        return self.run.config
 
     @property
     def method(self) -> str:
@@ -122,91 +136,16 @@ class Runs:
     finetune: list[FinetuneRun] = field(default_factory=list)
 
 
-def _config_kind(path: Path) -> str | None:
-    """'pretrain', 'finetune' or None (not a dvfb run config) for a config.json."""
-    data = read_json_file(path, AnalysisError)
-    if not isinstance(data, dict):
-        return None
-    if "pretrain_run" in data and "task" in data:
-        return "finetune"
-    if isinstance(data.get("agent"), str) and "domain" in data and "frames" in data:
-        return "pretrain"
-    return None
-
-
-def _load_pretrain(path: Path) -> PretrainRun:
-    from dvfb.workflows.config import load_run_config
-
-    return PretrainRun(path, load_run_config(path / "config.json"))
-
-
-def _load_finetune(path: Path, parent: PretrainRun | None) -> FinetuneRun:
-    from dvfb.runs import RunDir
-    from dvfb.workflows.finetune import load_finetune_run_config
-
-    config = load_finetune_run_config(RunDir(path))
-    if parent is None and config.pretrain_run:
-        # A fine-tuning run given on its own: its pre-training run tells whether CE was used.
-        candidate = Path(config.pretrain_run)
-        if (candidate / "config.json").is_file() and _config_kind(candidate / "config.json") == "pretrain":
-            parent = _load_pretrain(candidate)
-    return FinetuneRun(path, config, parent)
-
-
 def discover_runs(paths: Sequence[str | os.PathLike]) -> Runs:
-    """Every pre-training and fine-tuning run in or under ``paths`` (each visited once).
+    """Every pre-training and fine-tuning run in or under ``paths`` (:func:`dvfb.runs.layout.discover`).
+    Raises :class:`AnalysisError` if a path does not exist or is not a directory."""
+    from dvfb.runs.layout import discover  # the run configs import the agents: not needed by every report
 
-    A directory whose ``config.json`` holds a pre-training config is a pre-training run; its
-    ``finetune/*`` sub-directories are its fine-tuning runs. Other directories are searched
-    recursively. Raises :class:`AnalysisError` if a path does not exist or nothing is found.
-    """
-    runs = Runs()
-    seen: set[Path] = set()
-
-    def add_finetune(path: Path, parent: PretrainRun | None) -> None:
-        key = path.resolve()
-        if key not in seen:
-            seen.add(key)
-            runs.finetune.append(_load_finetune(path, parent))
-
-    def visit(directory: Path) -> None:
-        config_path = directory / "config.json"
-        kind = _config_kind(config_path) if config_path.is_file() else None
-        if kind == "pretrain":
-            key = directory.resolve()
-            if key in seen:
-                return
-            seen.add(key)
-            run = _load_pretrain(directory)
-            runs.pretrain.append(run)
-            finetune_dir = directory / "finetune"
-            if finetune_dir.is_dir():
-                for child in sorted(finetune_dir.iterdir()):
-                    if (child / "config.json").is_file() and _config_kind(child / "config.json") == "finetune":
-                        add_finetune(child, run)
-            return
-        if kind == "finetune":
-            parent = None
-            if directory.parent.name == "finetune" and (directory.parent.parent / "config.json").is_file():
-                grand = directory.parent.parent
-                if _config_kind(grand / "config.json") == "pretrain":
-                    parent = _load_pretrain(grand)
-            add_finetune(directory, parent)
-            return
-        for child in sorted(directory.iterdir()):
-            if child.is_dir() and not child.name.startswith(".") and child.name not in _NOT_RUNS:
-                visit(child)
-
-    for raw in paths:
-        path = Path(raw)
-        if not path.exists():
-            raise AnalysisError(f"{path} does not exist")
-        if not path.is_dir():
-            raise AnalysisError(f"{path} is not a directory (expected a run directory or a directory of runs)")
-        visit(path)
-    runs.pretrain.sort(key=lambda r: str(r.path))
-    runs.finetune.sort(key=lambda r: str(r.path))
-    return runs
+    pretrain, finetune = discover(paths, AnalysisError)
+    wrapped = {id(run): PretrainRun(run) for run in pretrain}
+    return Runs([wrapped[id(run)] for run in pretrain],
+                [FinetuneRun(run, None if parent is None else wrapped.get(id(parent), PretrainRun(parent)))
+                 for run, parent in finetune])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -229,8 +168,7 @@ class Score:
     episodes: int | None = None  # evaluation episodes behind the value
 
 
-def _episodes(data: dict) -> int | None:
-    returns = data.get("returns")
+def _episodes(returns: Any) -> int | None:
     return len(returns) if isinstance(returns, list) else None
 
 
@@ -266,18 +204,12 @@ def zeroshot_scores(runs: Iterable[PretrainRun], metric: str = RETURN) -> list[S
     """
     scores = []
     for run in runs:
-        directory = run.path / "zeroshot"
-        if not directory.is_dir():
-            continue
-        for path in sorted(directory.glob("*.json")):
-            if "@" in path.stem or path.name.startswith("."):
+        for path, result in run.run.zeroshot_results(AnalysisError):
+            value = getattr(result, metric)
+            if value is None:
                 continue
-            data = read_json(path)
-            if not _has(data, metric):
-                continue
-            task = data.get("task", path.stem)
-            scores.append(Score("zeroshot", run.method, run.config.domain, task, run.config.seed,
-                                _number(path, data, metric), path, episodes=_episodes(data)))
+            scores.append(Score("zeroshot", run.method, run.config.domain, result.task, run.config.seed,
+                                _number(path, {metric: value}, metric), path, episodes=_episodes(result.returns)))
     return scores
 
 
@@ -286,20 +218,19 @@ def finetune_scores(runs: Iterable[FinetuneRun], metric: str = RETURN) -> list[S
     or its success rate (``metric="success_rate"``, points that carry one)."""
     scores = []
     for run in runs:
-        path = run.path / "curve.json"
-        if not path.is_file():
+        curve = run.run.curve(AnalysisError)
+        if curve is None:
             log.warning("%s has no curve.json yet; skipped", run.path)
             continue
-        data = read_json(path)
-        curve = data.get("curve")
-        if not isinstance(curve, list) or not curve:
+        path = run.run.curve_path
+        if not curve.curve:
             raise AnalysisError(f"{path}: 'curve' is missing or empty")
-        last = curve[-1]
-        if isinstance(last, dict) and not _has(last, metric):
+        last = curve.curve[-1]
+        if not _has(last, metric):
             continue
         scores.append(Score("finetune", run.method, run.config.domain, run.config.task,
                             (run.pretrain_seed, run.config.seed), _number(path, last, metric), path,
-                            frames=int(_number(path, last, "frames")), episodes=_episodes(last)))
+                            frames=int(_number(path, last, "frames")), episodes=_episodes(last.get("returns"))))
     return scores
 
 
@@ -320,7 +251,7 @@ def random_scores(files: Iterable[str | os.PathLike], metric: str = RETURN) -> l
             if not _has(result, metric):
                 continue
             scores.append(Score("random", "random", data["domain"], task, data.get("seed", 0),
-                                _number(path, result, metric), path, episodes=_episodes(result)))
+                                _number(path, result, metric), path, episodes=_episodes(result.get("returns"))))
     return scores
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from dvfb.analysis.aggregate import mean_interval
-from dvfb.analysis.common import AnalysisError, FinetuneRun, read_json, method_sort_key
+from dvfb.analysis.common import AnalysisError, FinetuneRun, method_sort_key
 from dvfb.analysis.tables import STD_DDOF
 
 
@@ -38,17 +38,13 @@ def load_curves(runs: Sequence[FinetuneRun]) -> dict[str, dict[str, list[tuple[n
     """``{task: {method: [(frames, mean_return), ...one per run]}}`` from the runs' curve.json."""
     curves: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
     for run in runs:
-        path = run.path / "curve.json"
-        if not path.is_file():
+        curve = run.run.curve(AnalysisError)  # the points' frames and returns are checked there
+        if curve is None:
             continue
-        points = read_json(path).get("curve")
-        if not isinstance(points, list) or not points:
-            raise AnalysisError(f"{path}: 'curve' is missing or empty")
-        try:
-            frames = np.array([float(p["frames"]) for p in points])
-            returns = np.array([float(p["mean_return"]) for p in points])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise AnalysisError(f"{path}: a curve point lacks frames or mean_return ({exc})") from exc
+        if not curve.curve:
+            raise AnalysisError(f"{run.run.curve_path}: 'curve' is missing or empty")
+        frames = np.array([float(p["frames"]) for p in curve.curve])
+        returns = np.array([float(p["mean_return"]) for p in curve.curve])
         curves[run.config.task][run.method].append((frames, returns))
     return curves
 

@@ -144,7 +144,7 @@ def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_su
         if len(frames) > 1:
             report.notes.append("fine-tuning runs end at different frame counts: " + ", ".join(
                 f"{n} run(s) at {f}" for f, n in sorted(frames.items())) + "; Table 2 mixes budgets")
-        unfinished = [str(r.path) for r in runs.finetune if not (r.path / "finetune_summary.json").is_file()]
+        unfinished = [str(r.path) for r in runs.finetune if not r.run.is_finished()]
         if unfinished:
             report.notes.append("unfinished fine-tuning runs (last evaluation used): " + ", ".join(unfinished))
         frames_text = ", ".join(str(f) for f in sorted(frames))

@@ -36,7 +36,8 @@ def parse_goal(text: str) -> np.ndarray:
 
 
 def pretrain_config(args: argparse.Namespace):
-    from dvfb.workflows.config import preset_config, run_config_class
+    from dvfb.runs.presets import preset_config
+    from dvfb.runs.run_config import run_config_class
 
     base = preset_config(args.preset, args.agent)
     return merge(base, overrides_from_args(args, run_config_class(args.agent)))

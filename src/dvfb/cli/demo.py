@@ -18,9 +18,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     import shutil
 
     from dvfb import envs
-    from dvfb.analysis.video import record_video
+    from dvfb.workflows.video import record_video
     from dvfb.errors import DvfbError
-    from dvfb.workflows.config import preset_config
+    from dvfb.runs.presets import preset_config
     from dvfb.workflows.pretrain import pretrain
     from dvfb.workflows.zeroshot import random_policy_return, zeroshot
 
@@ -65,8 +65,10 @@ def bundled_demo_run() -> Path:
     """The pre-trained DVFB walker run shipped in the package (config, snapshot, provenance)."""
     from importlib import resources
 
+    from dvfb.runs.layout import run_kind
+
     path = Path(str(resources.files("dvfb") / "data" / "demo_walker_dvfb"))
-    if not (path / "config.json").is_file():
+    if run_kind(path) is None:
         raise ConfigError(f"the bundled demo agent is missing from the installation ({path})")
     return path
 

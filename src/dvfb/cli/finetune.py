@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, progress_flag, protocol_overrides
 
 def cmd_finetune(args: argparse.Namespace) -> int:
+    from dvfb.runs.layout import FinetuneRun
     from dvfb.workflows.finetune import finetune, finetune_group
 
     options = dict(snapshot=args.snapshot, seed=args.seed, name=args.name,
@@ -16,13 +16,13 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     runs = finetune_group(args.run, args.task, **options) if len(args.run) > 1 \
         else [finetune(args.run[0], args.task, **options)]
     for run in runs:
-        summary = json.loads((run.path / "finetune_summary.json").read_text())
+        summary = FinetuneRun(run.path, None).summary()
         print(f"fine-tuning finished: {run.path}")
-        print(f"zero-shot return {summary['zero_shot_return']:.1f} -> after {summary['frames']} frames "
-              f"{summary['final_return']:.1f}")
-        if "final_success_rate" in summary:
-            print(f"zero-shot success rate {summary['zero_shot_success_rate']:.2f} -> after {summary['frames']} "
-                  f"frames {summary['final_success_rate']:.2f}")
+        print(f"zero-shot return {summary.zero_shot_return:.1f} -> after {summary.frames} frames "
+              f"{summary.final_return:.1f}")
+        if summary.final_success_rate is not None:
+            print(f"zero-shot success rate {summary.zero_shot_success_rate:.2f} -> after {summary.frames} "
+                  f"frames {summary.final_success_rate:.2f}")
     return 0
 
 

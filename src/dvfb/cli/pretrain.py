@@ -29,7 +29,8 @@ def cmd_pretrain(args: argparse.Namespace) -> int:
 
 def register(sub, agent: str) -> None:
     from dvfb.agents import agent_names
-    from dvfb.workflows.config import PRESETS, preset_config, run_config_class
+    from dvfb.runs.presets import PRESETS, preset_config
+    from dvfb.runs.run_config import run_config_class
 
     p = sub.add_parser(
         "pretrain", help="reward-free pre-training", formatter_class=Formatter,

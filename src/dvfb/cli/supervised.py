@@ -15,7 +15,8 @@ AGENT = "supervised"
 def supervised_config(args: argparse.Namespace):
     """The run config of ``dvfb supervised``: the preset, the flags, and the task's domain."""
     from dvfb import envs
-    from dvfb.workflows.config import preset_config, run_config_class
+    from dvfb.runs.presets import preset_config
+    from dvfb.runs.run_config import run_config_class
 
     if args.task not in envs.TASKS:
         envs.make(args.task)  # one line listing the valid names
@@ -27,13 +28,14 @@ def supervised_config(args: argparse.Namespace):
 
 def cmd_supervised(args: argparse.Namespace) -> int:
     from dvfb.workflows.pretrain import pretrain
-    from dvfb.workflows.zeroshot import result_path, zeroshot
+    from dvfb.runs.layout import PretrainRun
+    from dvfb.workflows.zeroshot import zeroshot
 
     config = supervised_config(args)
     run_dir = Path(args.run_dir) if args.run_dir else Path("runs") / f"{AGENT}_{args.task}_{config.preset}_s{config.seed}"
     run = pretrain(config, run_dir, resume=args.resume, overwrite=args.overwrite, progress=args.progress,
                    command=sys.argv)
-    out = result_path(run, args.task, config.frames, config.frames)
+    out = PretrainRun.open(run.path).zeroshot_result(args.task, config.frames)
     if out.exists():
         print(f"supervised reference {run.path}: already evaluated ({out})")
         return 0
@@ -44,7 +46,8 @@ def cmd_supervised(args: argparse.Namespace) -> int:
 
 
 def register(sub, agent: str) -> None:
-    from dvfb.workflows.config import PRESETS, preset_config, run_config_class
+    from dvfb.runs.presets import PRESETS, preset_config
+    from dvfb.runs.run_config import run_config_class
 
     p = sub.add_parser(
         "supervised", help="the supervised reference: DDPG from scratch on a task's reward, then evaluated",

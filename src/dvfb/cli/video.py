@@ -8,7 +8,7 @@ from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_
 
 def cmd_video(args: argparse.Namespace) -> int:
     """A video of zero-shot evaluation episodes."""
-    from dvfb.analysis.video import record_video
+    from dvfb.workflows.video import record_video
 
     result = record_video(args.run, args.task, episodes=args.episodes, out=args.out, max_steps=args.max_steps,
                           frame_skip=args.frame_skip, height=args.height, width=args.width, camera=args.camera,

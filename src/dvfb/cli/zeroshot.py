@@ -8,13 +8,14 @@ from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_
 
 
 def cmd_zeroshot(args: argparse.Namespace) -> int:
-    from dvfb.workflows.snapshots import open_pretrained_run
+    from dvfb.workflows.resources import open_run
     from dvfb.workflows.zeroshot import zeroshot, zeroshot_group
 
     group = len(args.run) > 1
-    first_run, config = open_pretrained_run(args.run[0])
+    first_run = open_run(args.run[0])
+    config = first_run.config
     for other in args.run[1:]:
-        open_pretrained_run(other)  # names a missing or broken run before any work
+        open_run(other)  # names a missing or broken run before any work
     from dvfb.workflows.resources import evaluation_tasks
 
     # Every task is checked before the first is run: a bad second name must not leave a first result.
@@ -28,7 +29,7 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
     for task in tasks:
         if group:
             results = zeroshot_group(args.run, task, skip_existing=args.skip_existing, **options)
-        elif args.skip_existing and not args.overwrite and _existing_result(first_run, config, task, args.snapshot):
+        elif args.skip_existing and not args.overwrite and first_run.zeroshot_result(task, args.snapshot).exists():
             results = [None]
         else:
             results = [zeroshot(args.run[0], task, **options)]
@@ -43,13 +44,6 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
         print(f"{task:<36} " + (f"{run:<32} " if group else "") + f"{mean:9.1f} {std:8.1f} {n:9d}"
               + (f" {success:8.2f}" if success is not None else ""))
     return 0
-
-
-def _existing_result(run, config, task: str, snapshot: int | None) -> bool:
-    from dvfb.workflows.zeroshot import result_path
-
-    frames = config.frames if snapshot is None else snapshot
-    return result_path(run, task, frames, max(config.frames, frames)).exists()
 
 
 def register(sub, agent: str) -> None:

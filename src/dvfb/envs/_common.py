@@ -45,7 +45,7 @@ def set_random_state(random: np.random.RandomState, state: list) -> None:
 def _mujoco_state_api():
     """``mujoco`` and the state spec of a mid-episode checkpoint: everything MuJoCo needs to
     continue an episode bit for bit. Imported here, not at the top: mujoco's import reads MUJOCO_GL,
-    whose errors the rendering code reports with advice (dvfb.analysis.video)."""
+    whose errors the rendering code reports with advice (dvfb.workflows.video)."""
     import mujoco
 
     return mujoco, mujoco.mjtState.mjSTATE_INTEGRATION

@@ -96,13 +96,13 @@ class RunDir:
 
     @classmethod
     def create(cls, path: str | os.PathLike, config: Any, overwrite: bool = False,
-               command: Sequence[str] | None = None) -> RunDir:
+               command: Sequence[str] | None = None, kind: str | None = None) -> RunDir:
         """Make a new run directory holding ``config.json`` and ``meta.json``.
 
         An existing non-empty directory is an error unless ``overwrite``; then its contents are
         removed first, but only if it is a run directory (has config.json or meta.json), so that a
         mistyped path cannot wipe unrelated files. ``command`` is the command line to record
-        (e.g. ``sys.argv``).
+        (e.g. ``sys.argv``); ``kind`` the kind of run (``pretrain``, ``finetune``) meta.json records.
         """
         if not dataclasses.is_dataclass(config) or isinstance(config, type):
             raise TypeError(f"config must be a dataclass instance, got {type(config).__name__}")
@@ -125,6 +125,7 @@ class RunDir:
         except OSError as exc:
             raise RunDirError(f"cannot create run directory {path}: {exc}") from exc
         meta = {
+            **({"kind": kind} if kind is not None else {}),
             "config_class": type(config).__qualname__,
             "config_module": type(config).__module__,
             "dvfb_version": __version__,
@@ -134,7 +135,7 @@ class RunDir:
             "torch": torch.__version__,
         }
         write_json_atomic(path / META_FILE, meta)
-        return cls(path)
+        return RunDir(path)
 
     @classmethod
     def open(cls, path: str | os.PathLike) -> RunDir:
@@ -150,7 +151,7 @@ class RunDir:
         data = read_json(config_path, RunDirError)
         if not isinstance(data, dict):
             raise RunDirError(f"{config_path} is corrupt: expected a JSON object")
-        run = cls(path)
+        run = RunDir(path)
         # A resumed run writes into these; one that is not a directory fails now, before anything
         # (config.json included) is rewritten, not halfway through the resume.
         for sub in (run.metrics_dir, run.tb_dir, run.checkpoints_dir, run.snapshots_dir):

@@ -49,7 +49,7 @@ def _config_flags(group, cls: type, defaults, prefix: str = "", seen: set[str] |
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     from dvfb.agents import agent_names
-    from dvfb.workflows.config import preset_config
+    from dvfb.runs.presets import preset_config
 
     parser.add_argument("file", nargs="?", default=None,
                         help="sweep file (.toml or .json) with the fields below; command-line values override it")

@@ -10,8 +10,8 @@ import socket
 import time
 from pathlib import Path
 
-from dvfb.errors import ConfigError
-from dvfb.runs import LOCK_FILE, RunLock, read_json, write_json_atomic
+from dvfb.errors import ConfigError, DvfbError
+from dvfb.runs import LOCK_FILE, RunLock, read_json, read_metrics, write_json_atomic
 from dvfb.sweep import spec
 from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, alive_jobs
 from dvfb.sweep.spec import Cell, SweepConfig
@@ -125,12 +125,12 @@ def write_reports(sweep: SweepDir, config: SweepConfig) -> list[Path]:
 
 
 def _last_train_record(run: Path) -> dict:
-    metrics = run / "metrics" / "train.jsonl"
+    """The newest complete training record of a run (a torn last line is skipped); {} when none."""
     try:
-        lines = metrics.read_text(encoding="utf-8").strip().splitlines()
-        return json.loads(lines[-1]) if lines else {}
-    except (OSError, ValueError):
+        records = read_metrics(run, "train")
+    except (OSError, DvfbError):
         return {}
+    return records[-1] if records else {}
 
 
 def _alive(state: dict, jobs: dict[str, str] | None) -> str | None:

@@ -202,7 +202,7 @@ def _name_part(value: Any) -> str:
 
 def _run_config_class(agent: str) -> type:
     from dvfb.agents import agent_names
-    from dvfb.workflows.config import run_config_class
+    from dvfb.runs.run_config import run_config_class
 
     if agent not in agent_names():
         raise ConfigError(f"unknown agent {agent!r}; choose from {', '.join(agent_names())}")
@@ -367,7 +367,7 @@ def cell_task(cell: Cell) -> str | None:
 
 def cell_config(config: SweepConfig, cell: Cell):
     """The cell's full pre-training config (what ``dvfb pretrain`` would resolve)."""
-    from dvfb.workflows.config import preset_config
+    from dvfb.runs.presets import preset_config
 
     base = preset_config(config.preset, cell.agent, domain=cell.domain, seed=cell.seed)
     try:

@@ -38,6 +38,7 @@ from typing import Any
 
 from dvfb.errors import DvfbError
 from dvfb.runs import latest_checkpoint, read_json, write_json_atomic
+from dvfb.runs.layout import FinetuneRun, PretrainRun
 from dvfb.sweep import spec
 from dvfb.sweep.spec import Cell, SweepConfig
 
@@ -159,18 +160,23 @@ def pretrain_target(config: SweepConfig, cell: Cell) -> int:
     return spec.cell_config(config, cell).frames
 
 
+def cell_run(sweep: SweepDir, config: SweepConfig, cell: Cell) -> PretrainRun:
+    """The cell's pre-training run directory, with the config the sweep gives it (it may not exist yet)."""
+    return PretrainRun(sweep.run_path(cell), spec.cell_config(config, cell))
+
+
 def pretrain_done(sweep: SweepDir, config: SweepConfig, cell: Cell) -> bool:
-    summary = sweep.run_path(cell) / "pretrain_summary.json"
-    return summary.is_file() and read_json(summary).get("frames", -1) >= pretrain_target(config, cell)
+    return cell_run(sweep, config, cell).is_finished()
 
 
 def missing_zeroshot_tasks(sweep: SweepDir, config: SweepConfig, cell: Cell) -> list[str]:
-    run = sweep.run_path(cell)
-    return [t for t in spec.zeroshot_tasks(config, cell) if not (run / "zeroshot" / f"{t}.json").is_file()]
+    run = cell_run(sweep, config, cell)
+    return [t for t in spec.zeroshot_tasks(config, cell) if not run.zeroshot_result(t, run.config.frames).is_file()]
 
 
-def finetune_dir(sweep: SweepDir, cell: Cell, task: str) -> Path:
-    return sweep.run_path(cell) / "finetune" / task
+def finetune_run(sweep: SweepDir, config: SweepConfig, cell: Cell, task: str) -> FinetuneRun:
+    """The cell's fine-tuning run of ``task`` (its directory; it may not exist yet)."""
+    return FinetuneRun(cell_run(sweep, config, cell).finetune_path(task), None)
 
 
 def is_done(sweep: SweepDir, config: SweepConfig, unit: Unit) -> bool:
@@ -180,7 +186,7 @@ def is_done(sweep: SweepDir, config: SweepConfig, unit: Unit) -> bool:
         return all(pretrain_done(sweep, config, cell) for cell in cells)
     if unit.phase == "zeroshot":
         return not any(missing_zeroshot_tasks(sweep, config, cell) for cell in cells)
-    return all((finetune_dir(sweep, cell, unit.task) / "finetune_summary.json").is_file() for cell in cells)
+    return all(finetune_run(sweep, config, cell, unit.task).is_finished() for cell in cells)
 
 
 def _continue_flags(run_dir: Path) -> list[str]:
@@ -220,7 +226,7 @@ def command(sweep: SweepDir, config: SweepConfig, unit: Unit, torch_threads: int
         missing = [t for t in spec.zeroshot_tasks(config, cell)
                    if any(t in missing_zeroshot_tasks(sweep, config, member) for member in group)]
         return ["zeroshot", *runs, "--task", *missing, *(["--skip-existing"] if len(group) > 1 else [])]
-    flags = [_continue_flags(finetune_dir(sweep, member, unit.task)) for member in group]
+    flags = [_continue_flags(finetune_run(sweep, config, member, unit.task).path) for member in group]
     # A group's members checkpoint together: one resumes, one starts over, the whole group does.
     flag = ["--resume"] if ["--resume"] in flags else (["--overwrite"] if ["--overwrite"] in flags else [])
     return ["finetune", *runs, "--task", unit.task, "--no-progress", *flag]

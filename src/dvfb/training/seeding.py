@@ -11,7 +11,6 @@ import random
 import numpy as np
 import torch
 
-from dvfb.errors import CheckpointError
 
 
 def seed_everything(seed: int) -> np.random.Generator:
@@ -40,13 +39,3 @@ def run_generator(seed: int, device: torch.device | str) -> torch.Generator:
     """The run's own torch stream on its device, seeded from the run's seed: every draw of its agent
     and batches comes from it, never from torch's global generator."""
     return torch.Generator(device=device).manual_seed(seed)
-
-
-def check_resume_format(state: dict, where) -> None:
-    """Resume checkpoints from before runs owned their random streams (format 1) cannot continue
-    exactly: refuse them with one line."""
-    fmt = state.get("format", 1)
-    if fmt != 2:
-        raise CheckpointError(f"{where}: the resume checkpoint has format {fmt!r}; this dvfb resumes format 2 "
-                              "(format 1 was written before runs owned their random streams and cannot continue "
-                              "exactly): start the run again, or finish it with the dvfb version that wrote it")

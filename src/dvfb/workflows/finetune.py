@@ -16,8 +16,6 @@ its config, metrics, resume checkpoints and ``curve.json`` (frames, mean and std
 from __future__ import annotations
 
 import contextlib
-import dataclasses
-import functools
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,8 +26,8 @@ import torch
 from dvfb import envs
 from dvfb.agents import get_spec
 from dvfb.protocols import finetuner_class, zero_shot_protocol
-from dvfb.config import from_dict, merge, param, to_dict
-from dvfb.errors import CheckpointError, ConfigError, RunDirError
+from dvfb.config import merge, to_dict
+from dvfb.errors import CheckpointError, ConfigError
 from dvfb.data import ReplayBuffer
 from dvfb.runs import (
     MetricsLogger,
@@ -37,72 +35,28 @@ from dvfb.runs import (
     RunLock,
     check_writable,
     load_checkpoint,
-    read_json,
     remove_orphaned_checkpoints,
     save_checkpoint,
-    write_json_atomic,
 )
 from dvfb.training import loop
 from dvfb.training.loop import EpisodeState, OnlineCollector
 from dvfb.training.checkpointing import ResumeCheckpoints
 from dvfb.training.metrics import MetricWindow
 from dvfb.training.progress import Progress, notify
-from dvfb.training.seeding import check_resume_format, restore_rng_state, rng_state, run_generator, seed_everything
+from dvfb.runs.migrations import RESUME_FORMAT, check_resume_format
+from dvfb.runs.records import Curve, FinetuneSummary, curve_point
+from dvfb.training.seeding import restore_rng_state, rng_state, run_generator, seed_everything
 from dvfb.workflows.resources import check_replay, check_task_in_domain
-from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
-from dvfb.workflows.config import protocol_fields
+from dvfb.runs.layout import FinetuneRun
+from dvfb.runs.run_config import FinetuneRunConfig, finetune_run_config_class
+from dvfb.runs.snapshots import load_pretrained_agent
+from dvfb.workflows.resources import open_run
 from dvfb.nets.members import member_slice, stack_agents
 from dvfb.workflows.evaluate import Evaluation, evaluate_group, evaluate_policy
 from dvfb.workflows.groups import MemberGroup, check_one_method
 from dvfb.workflows.zeroshot import task_skill
 
 RESUME_KIND = "finetune_resume"
-RESUME_FORMAT = 2  # as pre-training's: 2 holds the run's torch generator
-
-
-@dataclass
-class FinetuneRunConfig:
-    """A fine-tuning run: which pre-trained snapshot, which task, and the protocol.
-
-    A run's config is an instance of :func:`finetune_run_config_class` ``(agent)``, which adds the
-    family's ``inference`` and ``finetune`` sections.
-    """
-
-    pretrain_run: str = param("", "Path of the pre-training run directory.")
-    agent: str = param("dvfb", "Agent of the pre-training run (copied for reports).")
-    domain: str = param("walker", "Domain of the pre-training run.")
-    task: str = param("walker_walk", "Downstream task.")
-    snapshot: int = param(0, "Pre-training snapshot (frames) the agent starts from.")
-    seed: int = param(0, "Seed of the task environment and the fine-tuning randomness.")
-    device: str = param("auto", "Torch device.")
-
-
-@functools.cache
-def finetune_run_config_class(agent: str) -> type:
-    spec = get_spec(agent)
-    cls = dataclasses.make_dataclass(f"{spec.agent_cls.__name__}FinetuneRunConfig", protocol_fields(agent),
-                                     bases=(FinetuneRunConfig,))
-    cls.__module__ = __name__
-    return cls
-
-
-def load_finetune_run_config(run: RunDir) -> FinetuneRunConfig:
-    """A fine-tuning run's ``config.json``, strictly, as its method's config class."""
-    data = read_json(run.config_path, ConfigError)
-    if not isinstance(data, dict) or not isinstance(data.get("agent"), str):
-        raise ConfigError(f"{run.config_path}: not a dvfb fine-tuning config")
-    try:
-        return from_dict(finetune_run_config_class(data["agent"]), data)
-    except ConfigError as exc:
-        raise ConfigError(f"{run.config_path}: {exc}") from exc
-
-
-def check_run_name(name: str) -> str:
-    """A fine-tuning run's name is one path component under ``RUN/finetune/``: never ``..``, a
-    path or a hidden name, which would write (or, with --overwrite, delete) outside it."""
-    if not name or name in (".", "..") or "/" in name or "\\" in name or name.startswith("."):
-        raise ConfigError(f"--name {name!r} must be a plain name (one path component under RUN/finetune/)")
-    return name
 
 
 def finetune(run_path: str | Path, task: str, *, snapshot: int | None = None, inference: dict | None = None,
@@ -198,9 +152,10 @@ class _Member:
 
 def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume, device) -> _Member:
     """Everything :func:`finetune` checks before it takes the run's lock."""
-    run, config = open_pretrained_run(run_path)
+    run = open_run(run_path)
+    config = run.config
     check_task_in_domain(task, config.domain)
-    agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
+    agent, snapshot = load_pretrained_agent(run, snapshot, device)
     run_config = finetune_run_config_class(config.agent)(
         pretrain_run=str(run.path), agent=config.agent, domain=config.domain, task=task, snapshot=snapshot,
         seed=config.seed if seed is None else seed, device=str(agent.device),
@@ -209,7 +164,7 @@ def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume,
     finetuner_class(get_spec(config.agent).finetuner).check(agent, run_config.finetune)
     check_replay(run_config.finetune.replay_capacity, "--finetune.replay-capacity", agent.replay_needs(),
                  envs.TASKS[task].episode_length, config.domain)
-    path = run.path / "finetune" / check_run_name(name or task)
+    path = run.finetune_path(name or task)
     if resume:
         RunDir.open(path)  # names what is missing before anything else happens
     else:
@@ -236,8 +191,8 @@ class FinetuneSession:
         cfg = self.cfg
         state = None
         if resume:
-            ft_run = RunDir.open(path)
-            stored = to_dict(load_finetune_run_config(ft_run))
+            ft_run = FinetuneRun.open(path)
+            stored = to_dict(ft_run.config)
             requested = to_dict(run_config)
             for key in ("device",):
                 stored.pop(key), requested.pop(key)
@@ -246,10 +201,9 @@ class FinetuneSession:
                 diffs = sorted(k for k in stored if stored[k] != requested[k])
                 raise ConfigError(f"--resume with a different configuration: {', '.join(diffs)} differ from "
                                   f"{path}/config.json")
-            summary = path / "finetune_summary.json"
-            if summary.is_file():
-                done = read_json(summary, RunDirError).get("frames")
-                if isinstance(done, int) and done >= cfg.frames:
+            done = ft_run.finished_frames()
+            if done is not None:
+                if done >= cfg.frames:
                     notify(f"[finetune] {path} already finished at {done} frames; nothing to resume")
                     self.run, self.finished = ft_run, True
                     return
@@ -262,7 +216,7 @@ class FinetuneSession:
                 raise CheckpointError(f"{path}: the latest checkpoint is not a fine-tuning checkpoint")
             check_resume_format(state, path)
         else:
-            ft_run = RunDir.create(path, run_config, overwrite=overwrite)
+            ft_run = FinetuneRun.create(path, run_config, overwrite=overwrite)
         self.run = ft_run
 
         self.rng = rng = seed_everything(run_config.seed)
@@ -379,11 +333,10 @@ class FinetuneSession:
 
     def finish(self) -> None:
         curve = self.curve
-        write_json_atomic(self.run.path / "finetune_summary.json", {
-            "task": self.task, "frames": self.step, "wall_clock_s": time.time() - self.started,
-            "zero_shot_return": curve[0]["mean_return"], "final_return": curve[-1]["mean_return"],
-            **({"zero_shot_success_rate": curve[0]["success_rate"], "final_success_rate": curve[-1]["success_rate"]}
-               if "success_rate" in curve[-1] else {})})
+        self.run.write_summary(FinetuneSummary(
+            task=self.task, frames=self.step, wall_clock_s=time.time() - self.started,
+            zero_shot_return=curve[0]["mean_return"], final_return=curve[-1]["mean_return"],
+            zero_shot_success_rate=curve[0].get("success_rate"), final_success_rate=curve[-1].get("success_rate")))
 
 
 def _run(session: FinetuneSession, progress) -> None:
@@ -452,7 +405,7 @@ def _run_group(sessions: list[FinetuneSession], task: str, progress) -> None:
 
 
 def _curve_point(frames: int, evaluation: Evaluation) -> dict:
-    return {"frames": frames, **evaluation.summary()}
+    return curve_point(frames, evaluation.summary())
 
 
 def _eval_metrics(point: dict) -> dict:
@@ -461,12 +414,11 @@ def _eval_metrics(point: dict) -> dict:
             **({"eval_success_rate": point["success_rate"]} if "success_rate" in point else {})}
 
 
-def _write_curve(run: RunDir, config: FinetuneRunConfig, curve: list[dict], inference_info: dict,
+def _write_curve(run: FinetuneRun, config: FinetuneRunConfig, curve: list[dict], inference_info: dict,
                  z: torch.Tensor | None) -> None:
-    write_json_atomic(run.path / "curve.json", {
-        "task": config.task, "domain": config.domain, "agent": config.agent, "seed": config.seed,
-        "snapshot": config.snapshot, "z": None if z is None else z.cpu().tolist(), "inference_info": inference_info,
-        "curve": curve})
+    run.write_curve(Curve(task=config.task, domain=config.domain, agent=config.agent, seed=config.seed,
+                          snapshot=config.snapshot, z=None if z is None else z.cpu().tolist(),
+                          inference_info=inference_info, curve=curve))
 
 
 def _copy_transitions(source: ReplayBuffer, target: ReplayBuffer, z: torch.Tensor) -> None:

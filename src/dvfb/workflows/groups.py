@@ -18,7 +18,7 @@ from dvfb.training.loop import GroupSource
 from dvfb.training.checkpointing import checkpoint_note
 from dvfb.training.metrics import GroupWindow
 from dvfb.training.progress import notify
-from dvfb.workflows.config import agent_sections
+from dvfb.runs.run_config import agent_sections
 
 
 def check_one_method(runs: list) -> None:

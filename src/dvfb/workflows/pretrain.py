@@ -43,7 +43,7 @@ from dvfb import envs
 from dvfb.agents import get_spec, make_agent
 from dvfb.config import replace, to_dict
 from dvfb.data import read_dataset, read_info
-from dvfb.errors import CheckpointError, ConfigError, RunDirError
+from dvfb.errors import CheckpointError, ConfigError
 from dvfb.data import ReplayBuffer, physics_columns
 from dvfb.runs import (
     PRETRAIN_RESUME_KIND,
@@ -51,30 +51,28 @@ from dvfb.runs import (
     RunDir,
     RunLock,
     load_checkpoint,
-    read_json,
     remove_orphaned_checkpoints,
     save_checkpoint,
     save_snapshot,
-    write_json_atomic,
 )
 from dvfb.training import loop
 from dvfb.training.loop import DatasetSource, EpisodeState, OnlineCollector
 from dvfb.training.checkpointing import ResumeCheckpoints
 from dvfb.training.metrics import MetricWindow
 from dvfb.training.progress import Progress, notify, progress_bars
-from dvfb.training.seeding import check_resume_format, restore_rng_state, rng_state, run_generator, seed_everything
+from dvfb.runs.layout import PretrainRun, snapshot_name
+from dvfb.runs.migrations import RESUME_FORMAT, check_resume_format
+from dvfb.runs.records import PretrainSummary
+from dvfb.runs.run_config import PretrainConfig
+from dvfb.runs.snapshots import snapshot_state
+from dvfb.training.seeding import restore_rng_state, rng_state, run_generator, seed_everything
 from dvfb.workflows.resources import check_memory, check_replay, check_task_in_domain, learner_state_bytes, setup_torch
 from dvfb.nets.members import member_slice, member_training_state, stack_agents
 from dvfb.workflows.groups import MemberGroup
-from dvfb.workflows.snapshots import snapshot_name, snapshot_state
-from dvfb.workflows.config import PretrainConfig, load_run_config
 
 log = logging.getLogger(__name__)
 
 RESUME_KIND = PRETRAIN_RESUME_KIND
-# Format of resume checkpoints. 1: before runs owned their random streams; 2: adds the state of the
-# run's torch generator (every skill draw, policy noise and batch). Format 1 cannot resume exactly.
-RESUME_FORMAT = 2
 # Fields that may change between a run and its resumption without changing what is computed.
 RESUMABLE_CHANGES = ("frames", "device", "torch_threads", "log_every")
 # perf options that only change how the same operations execute (perf.precision changes numerics).
@@ -320,9 +318,9 @@ class PretrainSession:
         obs_dim, action_dim = agent.obs_dim, agent.action_dim
         state = None
         if resume:
-            run = RunDir.open(run_path)
-            _check_resume_config(load_run_config(run.config_path), config)
-            finished = _finished_frames(run)
+            run = PretrainRun.open(run_path)
+            _check_resume_config(run.config, config)
+            finished = run.finished_frames()
             if finished is not None and finished >= config.frames:
                 notify(f"[pretrain] {run.path} already finished at {finished} frames (>= --frames {config.frames}); "
                        "nothing to resume")
@@ -340,7 +338,7 @@ class PretrainSession:
                 raise ConfigError(f"--frames {config.frames} is not beyond the checkpoint's step {state['step']}; "
                                   "pass a larger --frames to extend the run")
         else:
-            run = RunDir.create(run_path, config, overwrite=overwrite, command=command)
+            run = PretrainRun.create(run_path, config, overwrite=overwrite, command=command)
         self.run = run
         self.offline = offline = dataset is not None
         # What an offline checkpoint records instead of the replay: which data it trained on.
@@ -453,17 +451,7 @@ class PretrainSession:
     def finish(self, resume: bool) -> None:
         config = self.config
         elapsed = time.time() - self.started
-        write_json_atomic(self.run.path / "pretrain_summary.json", {
-            "agent": config.agent, "domain": config.domain, "frames": self.step, "episodes": self.episode.episode,
-            "wall_clock_s": elapsed, "frames_per_s": (self.step - self.start_step) / max(elapsed, 1e-9),
-            "resumed_from": self.start_step if resume else None, "device": str(self.device)})
-
-
-def _finished_frames(run: RunDir) -> int | None:
-    """Frames of a finished pre-training (its summary), None when it has not finished."""
-    path = run.path / "pretrain_summary.json"
-    if not path.is_file():
-        return None
-    summary = read_json(path, RunDirError)
-    frames = summary.get("frames") if isinstance(summary, dict) else None
-    return frames if isinstance(frames, int) else None
+        self.run.write_summary(PretrainSummary(
+            agent=config.agent, domain=config.domain, frames=self.step, episodes=self.episode.episode,
+            wall_clock_s=elapsed, frames_per_s=(self.step - self.start_step) / max(elapsed, 1e-9),
+            resumed_from=self.start_step if resume else None, device=str(self.device)))

@@ -8,13 +8,24 @@ import torch
 from dvfb import envs
 from dvfb.errors import ConfigError
 from dvfb.training.progress import notify
-from dvfb.workflows.config import PretrainConfig, resolve_device
+from dvfb.execution import resolve_device
+from dvfb.runs.layout import PretrainRun
+from dvfb.runs.run_config import PretrainConfig
 
 
 def setup_torch(config: PretrainConfig) -> torch.device:
     if config.torch_threads > 0:
         torch.set_num_threads(config.torch_threads)
     return resolve_device(config.device)
+
+
+def open_run(path) -> PretrainRun:
+    """Open a pre-training run and apply its ``torch_threads`` (acting is batch-1 forward passes,
+    which slow down badly when OpenMP threads compete for busy cores)."""
+    run = PretrainRun.open(path)
+    if run.config.torch_threads > 0:
+        torch.set_num_threads(run.config.torch_threads)
+    return run
 
 
 def available_memory_bytes() -> int | None:

@@ -37,9 +37,10 @@ from dvfb.training.progress import Progress
 from dvfb.training.seeding import seed_everything
 from dvfb.workflows.groups import check_one_method
 from dvfb.workflows.resources import evaluation_tasks
-from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
+from dvfb.runs.snapshots import load_pretrained_agent
+from dvfb.workflows.resources import open_run
 from dvfb.training.seeding import run_generator
-from dvfb.workflows.config import PretrainConfig
+from dvfb.runs.run_config import PretrainConfig
 from dvfb.nets.members import stack_agents
 from dvfb.workflows.evaluate import Evaluation, evaluate_group, evaluate_policy, run_episodes
 
@@ -128,11 +129,6 @@ def infer_from_dataset(agent: Agent, config: PretrainConfig, task: str, protocol
                                       "relabelled from physics)"}
 
 
-def result_path(run: RunDir, task: str, snapshot: int, final_snapshot: int) -> Path:
-    name = task if snapshot == final_snapshot else f"{task}@{snapshot}"
-    return run.path / "zeroshot" / f"{name}.json"
-
-
 def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, inference: dict | None = None,
              seed: int | None = None, skill_source: str = "rewards", reward_fn: str | Callable | None = None,
              goal: np.ndarray | None = None, overwrite: bool = False, device: str | None = None,
@@ -143,13 +139,13 @@ def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, in
     ``progress``: True shows a bar, False nothing, None a bar on a terminal and otherwise a line
     every ``DVFB_PROGRESS_SECONDS`` seconds.
     """
-    run, config = open_pretrained_run(run_path)
+    run = open_run(run_path)
+    config = run.config
     protocol = run_protocol(config, inference)
     protocol.check_source(skill_source, config.agent)
     evaluation_tasks(config, [task])
-    agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
-    final = max(config.frames, snapshot)
-    out = result_path(run, task, snapshot, final)
+    agent, snapshot = load_pretrained_agent(run, snapshot, device)
+    out = run.zeroshot_result(task, snapshot)
     if out.exists() and not overwrite:
         raise RunDirError(f"{out} exists; pass --overwrite to replace it")
     if goal is not None and skill_source == "goal":
@@ -209,7 +205,8 @@ def zeroshot_group(run_paths: list[str | Path], task: str, *, snapshot: int | No
         raise ConfigError("a group zero-shot needs at least one run")
     members = []
     for run_path in run_paths:
-        run, config = open_pretrained_run(run_path)
+        run = open_run(run_path)
+        config = run.config
         protocol = run_protocol(config, inference)
         protocol.check_source(skill_source, config.agent)
         evaluation_tasks(config, [task])
@@ -217,8 +214,8 @@ def zeroshot_group(run_paths: list[str | Path], task: str, *, snapshot: int | No
     check_one_method([(run, config) for run, config, _protocol in members])
     loaded, skipped = [], []
     for run, config, protocol in members:
-        agent, snap = load_pretrained_agent(run, config, snapshot, device)
-        out = result_path(run, task, snap, max(config.frames, snap))
+        agent, snap = load_pretrained_agent(run, snapshot, device)
+        out = run.zeroshot_result(task, snap)
         if out.exists() and not overwrite:
             if skip_existing:
                 skipped.append(run)

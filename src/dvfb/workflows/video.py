@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dvfb.analysis.common import AnalysisError, read_json
+from dvfb.analysis.common import AnalysisError
 from dvfb.errors import DvfbError
 
 FORMATS = (".gif", ".mp4")
@@ -139,17 +139,16 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:
                 writer.append_data(frame)
 
 
-def _task_vector(run, config, agent, task: str, snapshot: int, final: int, inference: dict | None,
+def _task_vector(run, config, agent, task: str, snapshot: int, inference: dict | None,
                  seed: int, infer: bool) -> tuple[torch.Tensor, str]:
     from dvfb import envs
     from dvfb.training.seeding import run_generator, seed_everything
-    from dvfb.workflows.zeroshot import result_path, run_protocol
+    from dvfb.workflows.zeroshot import run_protocol
 
-    stored = result_path(run, task, snapshot, final)
-    if stored.is_file() and not infer:
-        data = read_json(stored)
-        if isinstance(data.get("z"), list) and data.get("snapshot_frames") == snapshot:
-            return torch.tensor(data["z"], dtype=torch.float32, device=agent.device), f"z from {stored}"
+    stored = run.zeroshot_result(task, snapshot)
+    result = None if infer else run.read_zeroshot_result(task, snapshot, AnalysisError)
+    if result is not None and isinstance(result.z, list) and result.snapshot_frames == snapshot:
+        return torch.tensor(result.z, dtype=torch.float32, device=agent.device), f"z from {stored}"
     protocol = run_protocol(config, inference)
     rng = seed_everything(seed)
     agent.use_generator(run_generator(seed, agent.device))  # the analysis' own random stream
@@ -164,8 +163,8 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
                  seed: int | None = None, infer: bool = False, overwrite: bool = False,
                  device: str | None = None) -> dict:
     """Render ``episodes`` evaluation episodes of the run's zero-shot policy on ``task`` into one video."""
-    from dvfb.workflows.resources import check_task_in_domain
-    from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
+    from dvfb.runs.snapshots import load_pretrained_agent
+    from dvfb.workflows.resources import check_task_in_domain, open_run
 
     for name, value in (("--episodes", episodes), ("--frame-skip", frame_skip), ("--height", height),
                         ("--width", width)):
@@ -173,9 +172,10 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
             raise AnalysisError(f"{name} must be at least 1")
     if max_steps is not None and max_steps < 1:
         raise AnalysisError("--max-steps must be at least 1")
-    run, config = open_pretrained_run(run_path)
+    run = open_run(run_path)
+    config = run.config
     check_task_in_domain(task, config.domain)
-    out = Path(out) if out is not None else run.path / "analysis" / f"video_{task}.gif"
+    out = Path(out) if out is not None else run.analysis_dir / f"video_{task}.gif"
     check_output(out)
     if out.exists() and not overwrite:
         raise AnalysisError(f"{out} exists; pass --overwrite to replace it")
@@ -188,8 +188,8 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
     try:
         env.reset()
         renderer.frame()
-        agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
-        z, skill_source = _task_vector(run, config, agent, task, snapshot, max(config.frames, snapshot), inference,
+        agent, snapshot = load_pretrained_agent(run, snapshot, device)
+        z, skill_source = _task_vector(run, config, agent, task, snapshot, inference,
                                    seed, infer)
         frames, returns = [], []
         fps = env.metadata["render_fps"] / frame_skip

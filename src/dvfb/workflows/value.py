@@ -25,54 +25,13 @@ from __future__ import annotations
 import csv
 import math
 import time
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from dvfb.analysis.common import AnalysisError, json_safe
-
-NAN = float("nan")
-
-
-# ---------------------------------------------------------------------------------------------
-# statistics
-
-
-def spearman(x: Sequence[float], y: Sequence[float]) -> float:
-    """Spearman's rho of two sequences; NaN with fewer than 3 points or a constant sequence."""
-    from scipy.stats import spearmanr
-
-    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-    if x.shape != y.shape or x.ndim != 1:
-        raise ValueError("spearman needs two 1-D sequences of the same length")
-    if x.size < 3 or np.ptp(x) == 0 or np.ptp(y) == 0:
-        return NAN
-    return float(spearmanr(x, y).statistic)
-
-
-def quantile_bins(returns: Sequence[float], bins: int) -> list[np.ndarray]:
-    """Indices of ``bins`` equal-count groups of increasing return (quantile bins by rank).
-
-    Ties are broken by position (a stable sort), so every trajectory is in exactly one bin and the
-    bin sizes differ by at most one.
-    """
-    if bins < 1:
-        raise ValueError("bins must be >= 1")
-    order = np.argsort(np.asarray(returns, dtype=float), kind="stable")
-    return [part for part in np.array_split(order, min(bins, max(len(order), 1))) if part.size]
-
-
-def binned_spearman(values: Sequence[float], returns: Sequence[float], bins: int) -> list[dict]:
-    """Spearman's rho within each return bin (lowest returns first)."""
-    values, returns = np.asarray(values, dtype=float), np.asarray(returns, dtype=float)
-    result = []
-    for i, index in enumerate(quantile_bins(returns, bins)):
-        result.append({"bin": i, "n": int(index.size), "return_min": float(returns[index].min()),
-                       "return_max": float(returns[index].max()),
-                       "spearman": spearman(values[index], returns[index])})
-    return result
+from dvfb.analysis.statistics import binned_spearman, spearman
 
 
 # ---------------------------------------------------------------------------------------------
@@ -120,23 +79,24 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
     from dvfb.config import to_dict
     from dvfb.runs import check_writable, write_json_atomic
     from dvfb.training.seeding import run_generator, seed_everything
-    from dvfb.workflows.resources import check_task_in_domain
-    from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
+    from dvfb.runs.snapshots import load_pretrained_agent
+    from dvfb.workflows.resources import check_task_in_domain, open_run
     from dvfb.workflows.zeroshot import run_protocol
 
     if episodes_per_skill < 1:
         raise AnalysisError("--episodes-per-skill must be at least 1")
     if max_steps is not None and max_steps < 1:
         raise AnalysisError("--max-steps must be at least 1")
-    run, config = open_pretrained_run(run_path)
+    run = open_run(run_path)
+    config = run.config
     check_task_in_domain(task, config.domain)
     protocol = run_protocol(config, inference)
-    out_dir = run.path / "analysis"
+    out_dir = run.analysis_dir
     outputs = [out_dir / f"value_{task}.{ext}" for ext in ("csv", "png", "json")]
     existing = [p for p in outputs if p.exists()]
     if existing and not overwrite:
         raise AnalysisError(f"{existing[0]} exists; pass --overwrite to replace it")
-    agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
+    agent, snapshot = load_pretrained_agent(run, snapshot, device)
     if not agent.learns_skill_value:
         raise AnalysisError(f"agent {config.agent!r} learns no skill value (analyze-value needs a method that does, "
                             "such as fb or dvfb)")

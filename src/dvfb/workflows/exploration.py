@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from dvfb.analysis.common import AnalysisError, json_safe
+from dvfb.analysis.statistics import coverage
 
 ACTION_MODES = ("rollout", "mean")
 
@@ -79,18 +80,6 @@ COORDINATES: dict[str, Coordinates] = {
 }
 
 
-def coverage(points: np.ndarray, cell_size: float) -> int:
-    """Distinct cells ``floor(p / cell_size)`` occupied by the rows of ``points`` (N, C)."""
-    if not cell_size > 0:  # also NaN
-        raise AnalysisError("the coverage cell size must be positive")
-    points = np.asarray(points, dtype=float)
-    if points.size == 0:
-        return 0
-    points = points.reshape(-1, points.shape[-1])
-    cells = np.floor(points / cell_size).astype(np.int64)
-    return int(np.unique(cells, axis=0).shape[0])
-
-
 def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int = 3, steps: int | None = None,
                         actions: str = "rollout", cell_size: float | None = None, snapshot: int | None = None,
                         seed: int | None = None, overwrite: bool = False, device: str | None = None) -> dict:
@@ -98,14 +87,16 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
     from dvfb import envs
     from dvfb.runs import check_writable, write_json_atomic
     from dvfb.training.seeding import run_generator, seed_everything
-    from dvfb.workflows.snapshots import load_pretrained_agent, open_pretrained_run
+    from dvfb.runs.snapshots import load_pretrained_agent
+    from dvfb.workflows.resources import open_run
 
     if actions not in ACTION_MODES:
         raise AnalysisError(f"--actions must be one of {', '.join(ACTION_MODES)}, got {actions!r}")
     for name, value in (("--skills", skills), ("--repeats", repeats), ("--steps", 1 if steps is None else steps)):
         if value < 1:
             raise AnalysisError(f"{name} must be at least 1")
-    run, config = open_pretrained_run(run_path)
+    run = open_run(run_path)
+    config = run.config
     episode_length = envs.TASKS[envs.pretrain_task(config.domain)].episode_length
     steps = episode_length if steps is None else steps  # by default a whole episode
     if steps > episode_length:
@@ -116,12 +107,12 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
     cell = coords.cell_size if cell_size is None else float(cell_size)
     if not cell > 0 or cell == float("inf"):  # also NaN
         raise AnalysisError(f"--cell-size must be a positive finite number, got {cell!r}")
-    out_dir = run.path / "analysis"
+    out_dir = run.analysis_dir
     outputs = [out_dir / "exploration.png", out_dir / "exploration.json", out_dir / "exploration_positions.npz"]
     existing = [p for p in outputs if p.exists()]
     if existing and not overwrite:
         raise AnalysisError(f"{existing[0]} exists; pass --overwrite to replace it")
-    agent, snapshot = load_pretrained_agent(run, config, snapshot, device)
+    agent, snapshot = load_pretrained_agent(run, snapshot, device)
     seed = config.seed if seed is None else seed
     seed_everything(seed)
     agent.use_generator(run_generator(seed, agent.device))  # the analysis' own random stream

@@ -1,21 +1,18 @@
-"""The typed run configurations and the presets (``paper``, ``small``, ``code``).
+"""The typed run configurations: what ``config.json`` holds (docs/methods.md, "Configuration").
 
-One run config describes a pre-training run completely and is saved as ``config.json`` in its run
-directory. Its top-level fields (:class:`PretrainConfig`) are the same for every method; the
-method adds its own typed sections from the registry (``fb`` and ``exploration`` for DVFB,
-``ddpg`` and ``rnd`` for RND, ...), and its family's zero-shot (``inference``) and fine-tuning
-(``finetune``) configs, so that zero-shot and fine-tuning of a run use the preset it was trained
-with unless told otherwise. :func:`run_config_class` builds that dataclass once per method, so
-loading stays strict: unknown keys and wrong types are errors.
+One run config describes a run completely and is saved as ``config.json`` in its run directory.
 
-Presets:
+* A **pre-training run** (:class:`PretrainConfig`): the fields every method shares, plus the
+  method's own typed sections from the registry (``fb`` and ``exploration`` for DVFB, ``ddpg`` and
+  ``rnd`` for RND, ...) and its family's zero-shot (``inference``) and fine-tuning (``finetune``)
+  configs, so that zero-shot and fine-tuning of a run use the preset it was trained with unless
+  told otherwise. :func:`run_config_class` builds that dataclass once per method, so loading stays
+  strict: unknown keys and wrong types are errors.
+* A **fine-tuning run** (:class:`FinetuneRunConfig`): which snapshot of which pre-training run,
+  the task, and the ``inference`` and ``finetune`` sections (:func:`finetune_run_config_class`).
 
-* ``paper`` -- the spec's defaults (hidden 1024, batch 1024, alpha 5, eta 0.5, 2M frames).
-* ``code``  -- the authors' published constants where the method has them (DVFB/FB: B on the
-  code's pairings, alpha 50, RND on s_t, fine-tuning objective ``50 Q_F + Q_M``), and their
-  driver's replay sampling for every method (loader shards: finished episodes, one shard a batch).
-* ``small`` -- a CPU-sized preset: each method's constants with narrower networks and smaller
-  batches (see docs/results/ for the measurements that justify it).
+Configs written by older versions are read through :mod:`dvfb.runs.migrations`. The presets that
+build pre-training configs are :mod:`dvfb.runs.presets`.
 """
 
 from __future__ import annotations
@@ -26,19 +23,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from dvfb.agents import get_spec
-from dvfb.execution import PerfConfig
-from dvfb.protocols import protocols_of
-from dvfb.protocols.zero_shot import InferenceConfig
-from dvfb.config import from_dict, merge, param, replace, require_updates
-from dvfb.errors import ConfigError
+from dvfb.config import from_dict, param, require_updates
 from dvfb.data import ReplaySamplingConfig
-from dvfb.runs import read_json
+from dvfb.errors import ConfigError
+from dvfb.execution import DEVICES, PerfConfig
+from dvfb.files import read_json
+from dvfb.protocols import protocols_of
+from dvfb.runs.migrations import migrate_run_config
 
 PRESETS = ("small", "paper", "code")
-DEVICES = ("auto", "cpu", "cuda")
 DEFAULT_AGENT = "dvfb"
 
 
@@ -120,80 +114,62 @@ def agent_sections(config: Any) -> dict:
     return {name: dataclasses.asdict(getattr(config, name)) for name in spec.sections}
 
 
-def _migrate(data: dict) -> dict:
-    """Configs written by older versions, read as today's.
-
-    * A top-level field or section that moved into a method's section (``moved_fields`` of its spec, e.g.
-      the skill resampling period ``update_z_every`` -> ``fb.skill_every``) is moved there; one it
-      maps to None is dropped (online FB's configs once carried DVFB's unused ``exploration``).
-      A skill period of a method without skills, which never used it, is dropped too.
-    """
-    spec = get_spec(data["agent"])
-    data = dict(data)
-    for old, new in spec.moved_fields.items():
-        if old in data:
-            value = data.pop(old)
-            if new is not None:  # None: a field the method's runs carried but never used
-                section, key = new.split(".", 1)
-                data[section] = {**data.get(section, {}), key: value}
-    data.pop("update_z_every", None)  # methods without skills ignored the global period
-    return data
-
-
 def run_config_from_dict(data: dict, source: str = "config") -> PretrainConfig:
-    """A run config from its JSON dict, strictly (unknown keys and wrong types are errors)."""
+    """A pre-training run config from its JSON dict, strictly (unknown keys and wrong types are
+    errors), older versions' configs migrated first."""
     if not isinstance(data, dict) or not isinstance(data.get("agent"), str):
         raise ConfigError(f"{source}: not a dvfb run config (no 'agent' field)")
-    return from_dict(run_config_class(data["agent"]), _migrate(data))
+    return from_dict(run_config_class(data["agent"]), migrate_run_config(data, get_spec(data["agent"])))
 
 
 def load_run_config(path: str | Path) -> PretrainConfig:
-    """Read a pre-training run's ``config.json``."""
-    return run_config_from_dict(read_json(Path(path), ConfigError), str(path))
+    """Read a pre-training run's ``config.json``; errors name the file."""
+    try:
+        return run_config_from_dict(read_json(Path(path), ConfigError), str(path))
+    except ConfigError as exc:
+        if str(path) in str(exc):
+            raise
+        raise ConfigError(f"{path}: {exc}") from exc
 
 
-def preset_config(preset: str, agent: str = DEFAULT_AGENT, **top_level) -> PretrainConfig:
-    """The config of a preset for a method, with top-level fields (domain, frames, seed, ...) applied."""
-    if preset not in PRESETS:
-        raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+@dataclass
+class FinetuneRunConfig:
+    """A fine-tuning run: which pre-trained snapshot, which task, and the protocol.
+
+    A run's config is an instance of :func:`finetune_run_config_class` ``(agent)``, which adds the
+    family's ``inference`` and ``finetune`` sections.
+    """
+
+    pretrain_run: str = param("", "Path of the pre-training run directory.")
+    agent: str = param("dvfb", "Agent of the pre-training run (copied for reports).")
+    domain: str = param("walker", "Domain of the pre-training run.")
+    task: str = param("walker_walk", "Downstream task.")
+    snapshot: int = param(0, "Pre-training snapshot (frames) the agent starts from.")
+    seed: int = param(0, "Seed of the task environment and the fine-tuning randomness.")
+    device: str = param("auto", "Torch device.")
+
+
+@functools.cache
+def finetune_run_config_class(agent: str) -> type:
+    """The fine-tuning run-config dataclass of a registered method."""
     spec = get_spec(agent)
-    config = run_config_class(agent)(agent=agent, preset=preset)
-    if spec.defaults:
-        config = merge(config, spec.defaults)
-    if preset == "small":
-        config = merge(config, SMALL_PRESET)
-    if preset == "code":
-        config = merge(config, CODE_PRESET)
-    config = merge(config, spec.presets.get(preset, {}))
-    return replace(config, **top_level) if top_level else config
+    cls = dataclasses.make_dataclass(f"{spec.agent_cls.__name__}FinetuneRunConfig", protocol_fields(agent),
+                                     bases=(FinetuneRunConfig,))
+    cls.__module__ = __name__
+    return cls
 
 
-# The small preset keeps every constant of a method and shrinks widths and batch (each method's
-# own part is in its AgentSpec.presets) so that one update costs tens of milliseconds on two CPU
-# cores (measured in docs/results/cpu_experiment.md). These are the run-level fields.
-SMALL_PRESET: dict = {
-    "frames": 100_000,
-    "replay_capacity": 1_000_000,
-    "snapshot_frames": [],
-    "checkpoint_every": 20_000,
-    "inference": {"eval_episodes": 10},
-    "finetune": {"frames": 20_000, "eval_every": 5_000, "eval_episodes": 5, "seed_frames": 2000},
-}
+def load_finetune_run_config(path: str | Path) -> FinetuneRunConfig:
+    """A fine-tuning run's ``config.json``, strictly, as its method's config class; errors name the file."""
+    data = read_json(Path(path), ConfigError)
+    if not isinstance(data, dict) or not isinstance(data.get("agent"), str):
+        raise ConfigError(f"{path}: not a dvfb fine-tuning config")
+    try:
+        return from_dict(finetune_run_config_class(data["agent"]), data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from exc
 
 
-# The authors' driver, whatever the method: their (URLB's) replay reaches the updates through a
-# DataLoader with 4 workers that each hold a share of the finished episodes (docs/methods.md,
-# "Replay sampling"; measured in docs/results/crosscheck_walker.md).
-CODE_PRESET: dict = {"replay": {"sampling": "loader_shards", "loader_workers": 4, "loader_refresh": 1000}}
-
-
-def resolve_device(device: str) -> torch.device:
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device 'cuda' was requested but torch sees no CUDA device; use --device cpu or auto")
-    return torch.device(device)
-
-
-__all__ = ["DEVICES", "InferenceConfig", "PRESETS", "PretrainConfig", "agent_sections", "load_run_config",
-           "preset_config", "resolve_device", "run_config_class", "run_config_from_dict"]
+__all__ = ["DEFAULT_AGENT", "PRESETS", "FinetuneRunConfig", "PretrainConfig", "agent_sections",
+           "finetune_run_config_class", "load_finetune_run_config", "load_run_config", "protocol_fields",
+           "run_config_class", "run_config_from_dict"]

@@ -1,26 +1,24 @@
-"""Snapshots of pre-trained agents: writing them, and loading a run's agent with the checks that keep
-users from mixing runs (wrong agent, domain, configuration or shape; missing or corrupt files)."""
+"""Snapshots of pre-trained agents (``RUN/snapshots/snapshot_<frames>.pt``): writing them, and loading
+a run's agent with the checks that keep users from mixing runs (wrong agent, domain, configuration or
+shape; missing or corrupt files). Older snapshot formats are read through :mod:`dvfb.runs.migrations`."""
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import torch
 
 from dvfb.agents import Agent, make_agent
 from dvfb.config import to_dict
 from dvfb.errors import CheckpointError, ConfigError
-from dvfb.runs import RunDir, list_snapshots, load_snapshot
-from dvfb.workflows.config import PretrainConfig, agent_sections, load_run_config, resolve_device, run_config_from_dict
+from dvfb.execution import resolve_device
+from dvfb.runs.checkpoints import load_snapshot
+from dvfb.runs.layout import PretrainRun, snapshot_name
+from dvfb.runs.migrations import SNAPSHOT_FORMAT, check_snapshot_format
+from dvfb.runs.run_config import PretrainConfig, agent_sections, run_config_from_dict
 
-SNAPSHOT_PREFIX = "snapshot_"
-# Format of agent snapshots. 1: written before the agent registry (DVFB/FB only, no "format"
-# key); 2: adds the format, the domain, and the agent's full run config for every method.
-SNAPSHOT_FORMAT = 2
-
-
-def snapshot_name(frames: int) -> str:
-    return f"{SNAPSHOT_PREFIX}{frames}"
+# Snapshot formats: 1 was written before the agent registry (DVFB/FB only, no "format" key); 2 adds
+# the format, the domain, and the agent's full run config for every method.
+SNAPSHOT_KIND = "pretrained_agent"
 
 
 def snapshot_state(agent: Agent, config: PretrainConfig, frames: int, modules: dict | None = None) -> dict:
@@ -28,41 +26,16 @@ def snapshot_state(agent: Agent, config: PretrainConfig, frames: int, modules: d
     and the state of its pre-trained modules (``modules``: their state dicts, a group member's)."""
     if modules is None:
         modules = {k: m.state_dict() for k, m in agent.pretrained_modules().items()}
-    return {"kind": "pretrained_agent", "format": SNAPSHOT_FORMAT, "agent": agent.name, "domain": config.domain,
+    return {"kind": SNAPSHOT_KIND, "format": SNAPSHOT_FORMAT, "agent": agent.name, "domain": config.domain,
             "config": to_dict(config), "frames": frames, "obs_dim": agent.obs_dim, "action_dim": agent.action_dim,
             "modules": modules}
 
 
-def available_snapshots(run: RunDir) -> list[int]:
-    """Frames of the run's agent snapshots, ascending."""
-    names = list_snapshots(run)
-    return sorted(int(n[len(SNAPSHOT_PREFIX):]) for n in names
-                  if n.startswith(SNAPSHOT_PREFIX) and n[len(SNAPSHOT_PREFIX):].isdigit())
-
-
-def open_pretrained_run(run_path: str | Path) -> tuple[RunDir, PretrainConfig]:
-    """Open a pre-training run and apply its ``torch_threads`` (acting is batch-1 forward passes,
-    which slow down badly when OpenMP threads compete for busy cores)."""
-    run = RunDir.open(run_path)
-    try:
-        config = load_run_config(run.config_path)
-    except ConfigError as exc:
-        if str(run.config_path) in str(exc):
-            raise
-        raise ConfigError(f"{run.config_path}: {exc}") from exc
-    if config.torch_threads > 0:
-        torch.set_num_threads(config.torch_threads)
-    return run, config
-
-
 def check_snapshot(state: dict, config: PretrainConfig, where: str) -> None:
     """Refuse a snapshot of another method, domain, configuration or format, naming both sides."""
-    if state.get("kind") != "pretrained_agent":
+    if state.get("kind") != SNAPSHOT_KIND:
         raise CheckpointError(f"{where} is not a dvfb agent snapshot")
-    fmt = state.get("format", 1)
-    if not isinstance(fmt, int) or fmt > SNAPSHOT_FORMAT:
-        raise CheckpointError(f"{where} has snapshot format {fmt!r}, newer than this dvfb reads "
-                              f"({SNAPSHOT_FORMAT}); upgrade dvfb")
+    check_snapshot_format(state, where)
     if state.get("agent") != config.agent:
         raise CheckpointError(f"{where} was written by agent {state.get('agent')!r} but the run is configured for "
                               f"agent {config.agent!r}")
@@ -87,7 +60,7 @@ def check_snapshot(state: dict, config: PretrainConfig, where: str) -> None:
                               + "; ".join(diffs[:4]) + (" ..." if len(diffs) > 4 else "") + ")")
 
 
-def load_pretrained_agent(run: RunDir, config: PretrainConfig, snapshot: int | None = None,
+def load_pretrained_agent(run: PretrainRun, snapshot: int | None = None,
                           device: str | torch.device | None = None) -> tuple[Agent, int]:
     """Rebuild the run's agent from a snapshot (the newest by default), through the registry.
 
@@ -95,7 +68,8 @@ def load_pretrained_agent(run: RunDir, config: PretrainConfig, snapshot: int | N
     was written by another method, for another domain or shape, or with another configuration
     than the run's ``config.json``.
     """
-    frames = available_snapshots(run)
+    config = run.config
+    frames = run.snapshot_frames()
     if not frames:
         raise CheckpointError(f"run {run.path} has no pre-trained snapshot in {run.snapshots_dir}; "
                               "has pre-training finished?")
@@ -104,7 +78,7 @@ def load_pretrained_agent(run: RunDir, config: PretrainConfig, snapshot: int | N
     elif snapshot not in frames:
         raise CheckpointError(f"run {run.path} has no snapshot at {snapshot} frames; available: {frames}")
     state = load_snapshot(run, snapshot_name(snapshot), map_location="cpu")
-    where = f"snapshot {run.snapshots_dir / snapshot_name(snapshot)}.pt"
+    where = f"snapshot {run.snapshot_path(snapshot)}"
     check_snapshot(state, config, where)
     device = device if device is not None else resolve_device(config.device)
     return agent_from_snapshot(state, config, device, where), snapshot
