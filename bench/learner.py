@@ -83,7 +83,8 @@ from dvfb.execution import PerfConfig, bf16_matmul_is_fast
 from dvfb.config import merge, replace, to_dict
 from dvfb.data import ReplayBuffer
 from dvfb.runs import read_metrics
-from dvfb.training.metrics import MetricWindow, check_action
+from dvfb.training.observers import ReplayWriter
+from dvfb.training.rollout import Lane, Policy, rollout
 from dvfb.runs.presets import preset_config
 from dvfb.runs.run_config import PretrainConfig, agent_sections, run_config_from_dict
 
@@ -525,38 +526,24 @@ def print_progress(row: dict) -> None:
 
 def collector_runner(env, agent, replay: ReplayBuffer, action_dim: int, seed_phase: bool, seed: int,
                      update_z_every: int = 300, act=None):
-    """The loop body of dvfb.workflows.pretrain without the update, as a function of n steps.
+    """Pre-training's rollout without the update (the one rollout loop with pre-training's replay
+    writer and skill rule), as a function of n steps.
 
     ``act`` replaces ``agent.act`` (to time the torch-module acting path against the default).
     """
-    rng = np.random.default_rng(seed)
     act = agent.act if act is None else act
-    window = MetricWindow()
-    state = {"obs": None, "z": None, "z_host": None, "start": True, "step": 0}
+    lanes = [Lane(env, np.random.default_rng(seed), reward_key="task_reward")]
+
+    def skill_rule(step: int, episode_start: bool, current):
+        return agent.sample_skill(1)[0] if episode_start or step % update_z_every == 0 else current
+
+    policy = Policy(lambda obs, skills: act(obs, skills, explore=True), [skill_rule],
+                    (lambda step: True) if seed_phase else None)
+    observers = [ReplayWriter(lanes, [replay])]
+    state = {"step": 0}
 
     def run(n_steps: int) -> None:
-        obs, z, z_host, start, step = state["obs"], state["z"], state["z_host"], state["start"], state["step"]
-        for _ in range(n_steps):
-            if start:
-                obs, _ = env.reset()
-                z = agent.sample_skill(1)[0]
-                z_host = z.cpu().numpy()
-                replay.start_episode(obs)
-                start = False
-            if step % update_z_every == 0:
-                z = agent.sample_skill(1)[0]
-                z_host = z.cpu().numpy()
-            if seed_phase:
-                action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
-            else:
-                action = act(obs, z, explore=True)
-            check_action(action, step, window)
-            obs, _, terminated, truncated, info = env.step(action)
-            replay.add(action, info["task_reward"], 0.0 if terminated else 1.0, obs, z_host)
-            step += 1
-            if terminated or truncated:
-                start = True
-        state.update(obs=obs, z=z, z_host=z_host, start=start, step=step)
+        state["step"] = rollout(lanes, policy, observers, start=state["step"], stop=state["step"] + n_steps)
 
     return run
 
@@ -596,13 +583,13 @@ def run_collector(args, device) -> dict:
             replay = ReplayBuffer(100_000, obs_dim, action_dim, z_dim,
                                   max_episode_length=envs.TASKS[task].episode_length, device=device)
             runners["acting, small actor, torch modules"] = collector_runner(
-                envs.make(task, seed=0), agent, replay, action_dim, False, 0, act=agent._act_torch)
-        obs = np.zeros(obs_dim, np.float32)
-        z = agent.sample_skill(1)[0]
+                envs.make(task, seed=0), agent, replay, action_dim, False, 0, act=agent.model._act_torch)
+        obs = np.zeros((1, obs_dim), np.float32)
+        z = agent.sample_skill(1)
         reps = 300 if args.quick else 1000
         paths = {f"{name} actor": agent.act}
         if device.type == "cpu":
-            paths[f"{name} actor, torch modules"] = agent._act_torch
+            paths[f"{name} actor, torch modules"] = agent.model._act_torch
         for label, act in paths.items():
             for _ in range(50):
                 act(obs, z, explore=True)

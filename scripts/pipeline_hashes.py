@@ -227,6 +227,8 @@ def main_(argv: list[str] | None = None) -> int:
         Path(args.out).write_text(json.dumps(hashes, indent=1, sort_keys=True) + "\n")
     if args.compare:
         before = json.loads(Path(args.compare).read_text())
+        if args.agents:  # a part of the pipeline: compare what it wrote
+            before = {k: v for k, v in before.items() if k in hashes}
         differ = sorted(k for k in set(before) | set(hashes) if before.get(k) != hashes.get(k))
         for key in differ:
             print(f"DIFFERS {key}: {before.get(key)} -> {hashes.get(key)}")

@@ -23,7 +23,7 @@ from dvfb.errors import CheckpointError
 from dvfb.protocols import finetuner_class, protocols_of
 from dvfb.runs import RunDir, load_snapshot
 from dvfb.runs.layout import PretrainRun
-from dvfb.runs.snapshots import agent_from_snapshot, check_snapshot, load_pretrained_agent, snapshot_state
+from dvfb.runs.snapshots import model_from_snapshot, check_snapshot, load_model, snapshot_state
 from dvfb.runs.run_config import load_run_config, run_config_class
 from dvfb.workflows.finetune import finetune
 from dvfb.workflows.pretrain import pretrain
@@ -87,15 +87,14 @@ def test_snapshot_round_trip_through_the_registry(agent_name):
     assert state["format"] == 2 and state["agent"] == agent_name and state["domain"] == "point_mass_maze"
     state = torch.load(_roundtrip(state), weights_only=False)
     check_snapshot(state, config, "snap")
-    loaded = agent_from_snapshot(state, config, "cpu", "snap")
-    assert type(loaded) is type(agent)
-    for key, module in agent.pretrained_modules().items():
-        for (n1, t1), (n2, t2) in zip(module.state_dict().items(), loaded.pretrained_modules()[key].state_dict().items()):
+    loaded = model_from_snapshot(state, config, "cpu", "snap")
+    assert type(loaded) is type(agent.model) and not hasattr(loaded, "optimizers")
+    for key, module in loaded.snapshot_modules().items():
+        for (n1, t1), (n2, t2) in zip(agent.pretrained_modules()[key].state_dict().items(), module.state_dict().items()):
             same = torch.equal(t1, t2) if isinstance(t1, torch.Tensor) else t1 == t2  # Proto's queue pointer
             assert n1 == n2 and same, (key, n1)
-    obs = MAZE.reset(seed=3)[0]
+    obs = MAZE.reset(seed=3)[0][None]
     skill = agent.sample_skill(1)
-    skill = None if skill is None else skill[0]
     assert np.array_equal(agent.act(obs, skill, explore=False), loaded.act(obs, skill, explore=False))
 
 
@@ -205,7 +204,7 @@ def test_snapshot_of_another_method_domain_or_shape_names_both_sides():
         check_snapshot(state, wider, "snap")
     state["obs_dim"] = OBS + 1
     with pytest.raises(CheckpointError, match="does not fit"):
-        agent_from_snapshot(state, rnd_config, "cpu", "snap")
+        model_from_snapshot(state, rnd_config, "cpu", "snap")
 
 
 def test_legacy_fb_run_still_loads(tmp_path):
@@ -224,8 +223,8 @@ def test_legacy_fb_run_still_loads(tmp_path):
     torch.save(state, snap)
     loaded = load_run_config(run / "config.json")
     assert not hasattr(loaded, "exploration") and type(loaded) is run_config_class("fb")
-    agent, frames = load_pretrained_agent(PretrainRun(run, loaded))
-    assert frames == 1000 and agent.name == "fb"
+    model, frames = load_model(PretrainRun(run, loaded))
+    assert frames == 1000 and model.name == "fb"
 
 
 def test_cli_lists_agents_and_their_flags(capsys):

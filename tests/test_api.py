@@ -1,5 +1,7 @@
 """The Python API: dvfb.load(run) -> infer a skill (samples, reward function, goal) and act."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
@@ -28,16 +30,17 @@ def test_load_infer_and_act(runs):
     samples = rng.normal(size=(64, obs.shape[0])).astype(np.float32)
     rewards = samples[:, 0]
     z = model.infer_z(samples, samples, rewards, reward_quantile=None)
-    expected, _ = model.agent.infer_z(torch.as_tensor(samples), torch.as_tensor(samples), torch.as_tensor(rewards), None)
+    expected, _ = model.model.infer_skill(torch.as_tensor(samples), torch.as_tensor(samples), torch.as_tensor(rewards),
+                                          SimpleNamespace(reward_quantile=None))
     torch.testing.assert_close(z, expected)
-    assert z.shape == (model.agent.skill_dim,)
-    torch.testing.assert_close(model.infer_z(goal=obs), model.agent.infer_z_from_goal(torch.as_tensor(obs)))
+    assert z.shape == (model.model.skill_dim,) and not hasattr(model.model, "optimizers")
+    torch.testing.assert_close(model.infer_z(goal=obs), model.model.skill_from_goal(torch.as_tensor(obs)))
     z_fn = model.infer_z(reward_fn=lambda next_obs: -np.abs(next_obs[:, 0]))
     assert z_fn.shape == z.shape and torch.isfinite(z_fn).all()
     policy = model.policy(z)
     action = policy(obs)
     assert action.shape == env.action_space.shape and np.all(np.abs(action) < 1)
-    np.testing.assert_array_equal(action, model.agent.act(obs, z, explore=False))
+    np.testing.assert_array_equal(action, model.model.act(obs[None], z[None], explore=False)[0])
 
 
 def test_single_policy_method_and_bad_calls(runs):

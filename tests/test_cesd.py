@@ -422,7 +422,7 @@ def test_urlb_finetuner_rebuilds_the_ensemble_and_trains_every_head():
         agent.update(make_batch(32, seed=seed))
     pretrained = {k: v.clone() for k, v in agent.core.critic.state_dict().items()}
     skill = agent.sample_skill(1)[0]
-    finetuner = DDPGFinetuner(agent, skill, DDPGFinetuneConfig())
+    finetuner = DDPGFinetuner(agent.model, skill, DDPGFinetuneConfig())
     critic = agent.core.critic
     assert isinstance(critic, EnsembleCritic)
     for key, value in critic.state_dict().items():

@@ -23,7 +23,7 @@ def agent_and_batch(penalty, samples=6, seed=0, **conservative):
                   action=torch.rand(N, ACT, generator=g, dtype=torch.float64) * 2 - 1,
                   reward=torch.zeros(N, 1, dtype=torch.float64), discount=torch.full((N, 1), 0.99, dtype=torch.float64),
                   next_obs=torch.randn(N, OBS, generator=g, dtype=torch.float64), future_obs=None, z=None)
-    z = agent.sample_z(N).double()
+    z = agent.sample_skill(N).double()
     return agent, batch, z
 
 
@@ -35,13 +35,14 @@ def lse(values):
 @pytest.mark.parametrize("penalty", ["value", "measure"])
 def test_penalty_by_hand(penalty):
     agent, b, z = agent_and_batch(penalty, samples=6)
-    assert (agent.num_uniform, agent.num_each) == (3, 1)
+    term = agent.penalty_term
+    assert (term.num_uniform, term.num_each) == (3, 1)
     agent.generator = torch.Generator().manual_seed(7)
-    states, actions, zs = agent.penalty_actions(b, z)
+    states, actions, zs = term.penalty_actions(agent, b, z)
     agent.generator = torch.Generator().manual_seed(7)
     forward = agent.forward_map(b.obs, b.action, z)
     backward = agent.backward_map(b.next_obs)
-    got = float(agent.conservative_penalty(b, z, forward, backward).detach())
+    got = float(term.conservative_penalty(agent, b, z, forward, backward).detach())
 
     # Groups, by construction: 3 uniform at s, pi(s) at s, pi(s') at s', then the dataset action.
     for j in range(3):
@@ -76,7 +77,8 @@ def test_penalty_by_hand(penalty):
 def test_the_value_penalty_trains_f_only_and_the_measure_penalty_also_b():
     for penalty, b_grad in (("value", False), ("measure", True)):
         agent, b, z = agent_and_batch(penalty)
-        p = agent.conservative_penalty(b, z, agent.forward_map(b.obs, b.action, z), agent.backward_map(b.next_obs))
+        p = agent.penalty_term.conservative_penalty(agent, b, z, agent.forward_map(b.obs, b.action, z),
+                                                    agent.backward_map(b.next_obs))
         f_grads = torch.autograd.grad(p, list(agent.forward_map.parameters()), retain_graph=True, allow_unused=True)
         b_grads = torch.autograd.grad(p, list(agent.backward_map.parameters()), allow_unused=True)
         assert any(g is not None and g.abs().sum() > 0 for g in f_grads)
@@ -86,13 +88,13 @@ def test_the_value_penalty_trains_f_only_and_the_measure_penalty_also_b():
 def test_alpha_rises_above_the_target_and_falls_below_it():
     agent, _, _ = agent_and_batch("value", target=50.0)
     assert float(agent.log_alpha.detach().exp()) == 1.0  # the authors' initial multiplier
-    up = agent.alpha_step(torch.tensor(80.0, dtype=torch.float64))
+    up = agent.penalty_term.alpha_step(agent, torch.tensor(80.0, dtype=torch.float64))
     assert float(up) > 1.0
     agent2, _, _ = agent_and_batch("value", target=50.0)
-    down = agent2.alpha_step(torch.tensor(10.0, dtype=torch.float64))
+    down = agent2.penalty_term.alpha_step(agent2, torch.tensor(10.0, dtype=torch.float64))
     assert float(down) < 1.0
     fixed, _, _ = agent_and_batch("value", lagrange=False, alpha=0.25)
-    assert float(fixed.alpha_step(torch.tensor(80.0))) == 0.25 and float(fixed.log_alpha.detach()) == 0.0
+    assert float(fixed.penalty_term.alpha_step(fixed, torch.tensor(80.0))) == 0.25 and float(fixed.log_alpha.detach()) == 0.0
 
 
 def test_sample_groups_must_split_evenly():

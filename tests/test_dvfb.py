@@ -260,7 +260,7 @@ def test_exploration_critic_loss_matches_td_reference():
     z = sample_z_prior(32, D)
     next_action = training_action(agent.actor(batch.next_obs, z), 0.2, 0.3).detach()
     reward = torch.rand(32, 1)
-    loss = agent.exploration_critic_loss(batch, z, next_action, reward)
+    loss = agent.explorer.critic_loss(agent, batch, z, next_action, reward)
     with torch.no_grad():
         tq = agent.exploration_critic_target(batch.next_obs, z, next_action)
         y = reward + batch.discount * torch.minimum(tq[0], tq[1])
@@ -280,7 +280,7 @@ def test_intrinsic_reward_uses_the_just_updated_modules(rnd_input):
     with torch.no_grad():
         labels = agent.backward_map(batch.next_obs)
     metrics = {}
-    reward = agent.intrinsic_reward(batch, labels, metrics)
+    reward = agent.explorer.intrinsic_reward(agent, batch, labels, metrics)
     with torch.no_grad():  # recompute from the state after the call
         x = batch.next_obs if rnd_input == "next_obs" else batch.obs
         normed = agent.rnd.networks.normalise(x)

@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from dvfb.agents.dvfb import DVFBAgent
+from dvfb.protocols.zero_shot import InferenceConfig
 from dvfb.agents.fb import (
     BACKWARD_INPUTS,
     FBAgent,
@@ -195,7 +196,7 @@ def test_zero_rewards_fall_back():
     torch.manual_seed(0)
     agent = FBAgent(OBS, ACT, tiny_config())
     batch = make_batch(64)
-    z, info = agent.infer_z(batch.obs, batch.next_obs, torch.zeros(64), quantile=0.99)
+    z, info = agent.model.infer_skill(batch.obs, batch.next_obs, torch.zeros(64), InferenceConfig(reward_quantile=0.99))
     assert info["fallback"] == "prior"
     torch.testing.assert_close(z.norm(), torch.tensor(math.sqrt(D)), atol=1e-5, rtol=0)
 
@@ -206,7 +207,7 @@ def test_agent_infer_z_uses_label_features_and_is_on_the_sphere(mode):
     agent = FBAgent(OBS, ACT, tiny_config(backward_input=mode))
     batch = make_batch(500, seed=1)
     reward = batch.next_obs[:, 0]
-    z, info = agent.infer_z(batch.obs, batch.next_obs, reward, quantile=0.9)
+    z, info = agent.model.infer_skill(batch.obs, batch.next_obs, reward, InferenceConfig(reward_quantile=0.9))
     torch.testing.assert_close(z.norm(), torch.tensor(math.sqrt(D)), atol=1e-5, rtol=0)
     inputs = batch.next_obs if mode == "state" else torch.cat([batch.obs, batch.next_obs], -1)
     with torch.no_grad():
@@ -220,7 +221,7 @@ def test_infer_z_from_goal_is_projected_b():
     torch.manual_seed(0)
     agent = FBAgent(OBS, ACT, tiny_config())
     goal = torch.randn(OBS)
-    z = agent.infer_z_from_goal(goal)
+    z = agent.model.skill_from_goal(goal)
     with torch.no_grad():
         torch.testing.assert_close(z, agent.backward_map(goal[None])[0])
     torch.testing.assert_close(z.norm(), torch.tensor(math.sqrt(D)), atol=1e-5, rtol=0)

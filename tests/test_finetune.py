@@ -15,6 +15,7 @@ import torch
 
 from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig
 from dvfb.agents.fb import FBAgent, FBConfig
+from dvfb.protocols.zero_shot import InferenceConfig
 from dvfb.protocols.dual_value import DualValueFinetuner, FinetuneConfig
 from dvfb.nets import RunningMeanStd, project_to_sphere
 from dvfb.data import Batch
@@ -60,7 +61,7 @@ def constant_batch(n: int, reward: float, dtype=torch.float32) -> Batch:
 def z_for_constant_implicit(agent, batch, c_fb):
     """z = kappa * b with b = B(s'), so that B_i (Cov + lambda I)^-1 z = c_fb for every row."""
     with torch.no_grad():
-        b = agent.backward_features(batch.obs[:1], batch.next_obs[:1])[0]
+        b = agent.model.backward_features(batch.obs[:1], batch.next_obs[:1])[0]
     kappa = c_fb * (D + RIDGE) / D  # |b|^2 = d
     return kappa * b
 
@@ -72,7 +73,7 @@ def z_for_constant_implicit(agent, batch, c_fb):
 def test_constant_inputs_map_to_the_implicit_reward():
     agent = make_agent()
     batch = constant_batch(64, 0.25)
-    finetuner = DualValueFinetuner(agent, z_for_constant_implicit(agent, batch, 3.7),
+    finetuner = DualValueFinetuner(agent.model, z_for_constant_implicit(agent, batch, 3.7),
                                    FinetuneConfig(cov_ridge=RIDGE))
     for _ in range(3):  # from the first update on
         metrics = {}
@@ -93,7 +94,7 @@ def test_constant_inputs_example_in_float64():
     batch = constant_batch(1024, 0.25, dtype=torch.float64)
     z = z_for_constant_implicit(agent, batch, 3.7)
     assert z.dtype == torch.float64
-    finetuner = DualValueFinetuner(agent, z, FinetuneConfig(cov_ridge=RIDGE))
+    finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig(cov_ridge=RIDGE))
     mapped = finetuner.mapped_reward(batch, {})
     assert mapped.dtype == torch.float64
     assert torch.all((mapped - 3.69999985).abs() < 5e-9)
@@ -107,16 +108,16 @@ def test_mapping_epsilon_is_visible_for_tiny_task_rewards():
     z = z_for_constant_implicit(agent, batch, 2.0)
     k = 64 / (64 + 1e-4)
     expected = 2.0 * 1e-6 * k / (1e-6 * k + 1e-8)
-    mapped = DualValueFinetuner(agent, z, FinetuneConfig(cov_ridge=RIDGE)).mapped_reward(batch, {})
+    mapped = DualValueFinetuner(agent.model, z, FinetuneConfig(cov_ridge=RIDGE)).mapped_reward(batch, {})
     torch.testing.assert_close(mapped, torch.full((64, 1), expected), rtol=1e-5, atol=0)
-    no_eps = DualValueFinetuner(agent, z, FinetuneConfig(cov_ridge=RIDGE, reward_map_eps=0.0))
+    no_eps = DualValueFinetuner(agent.model, z, FinetuneConfig(cov_ridge=RIDGE, reward_map_eps=0.0))
     torch.testing.assert_close(no_eps.mapped_reward(batch, {}), torch.full((64, 1), 2.0), rtol=1e-5, atol=0)
 
 
 def test_mapping_matches_reference_on_a_random_batch():
     agent = make_agent()
     z = project_to_sphere(torch.randn(D, generator=torch.Generator().manual_seed(2)))
-    finetuner = DualValueFinetuner(agent, z, FinetuneConfig())
+    finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig())
     rms_fb, rms_t = RunningMeanStd(), RunningMeanStd()
     for seed in range(3):
         batch = make_batch(64, seed=seed)
@@ -134,8 +135,8 @@ def test_mapping_matches_reference_on_a_random_batch():
 def test_mapping_is_invariant_to_task_reward_scale(k):
     agent = make_agent()
     z = project_to_sphere(torch.randn(D, generator=torch.Generator().manual_seed(3)))
-    base = DualValueFinetuner(agent, z, FinetuneConfig())
-    scaled = DualValueFinetuner(agent, z, FinetuneConfig())
+    base = DualValueFinetuner(agent.model, z, FinetuneConfig())
+    scaled = DualValueFinetuner(agent.model, z, FinetuneConfig())
     for seed in range(4):
         batch = make_batch(64, seed=seed)
         batch_k = make_batch(64, seed=seed, reward=k * batch.reward)
@@ -146,7 +147,7 @@ def test_mapping_is_invariant_to_task_reward_scale(k):
 def test_all_zero_task_rewards_map_to_zero():
     agent = make_agent()
     z = project_to_sphere(torch.randn(D, generator=torch.Generator().manual_seed(4)))
-    finetuner = DualValueFinetuner(agent, z, FinetuneConfig())
+    finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig())
     for seed in range(3):
         batch = make_batch(32, seed=seed, reward=torch.zeros(32, 1))
         mapped = finetuner.mapped_reward(batch, {})
@@ -159,18 +160,18 @@ def test_mapping_options_abs_and_clip():
     agent = make_agent()
     batch = constant_batch(64, 0.5)
     z = z_for_constant_implicit(agent, batch, -3.0)  # negative implicit mean flips the sign
-    plain = DualValueFinetuner(agent, z, FinetuneConfig(cov_ridge=RIDGE)).mapped_reward(batch, {})
+    plain = DualValueFinetuner(agent.model, z, FinetuneConfig(cov_ridge=RIDGE)).mapped_reward(batch, {})
     torch.testing.assert_close(plain, torch.full((64, 1), -3.0), rtol=1e-5, atol=0)
-    absolute = DualValueFinetuner(agent, z, FinetuneConfig(cov_ridge=RIDGE, reward_map_abs=True))
+    absolute = DualValueFinetuner(agent.model, z, FinetuneConfig(cov_ridge=RIDGE, reward_map_abs=True))
     torch.testing.assert_close(absolute.mapped_reward(batch, {}), torch.full((64, 1), 3.0), rtol=1e-5, atol=0)
-    clipped = DualValueFinetuner(agent, z, FinetuneConfig(cov_ridge=RIDGE, reward_map_clip=1.5))
+    clipped = DualValueFinetuner(agent.model, z, FinetuneConfig(cov_ridge=RIDGE, reward_map_clip=1.5))
     torch.testing.assert_close(clipped.mapped_reward(batch, {}), torch.full((64, 1), -1.5))
 
 
 def test_without_mapping_the_task_reward_is_used_unchanged():
     agent = make_agent()
     z = project_to_sphere(torch.randn(D, generator=torch.Generator().manual_seed(5)))
-    finetuner = DualValueFinetuner(agent, z, FinetuneConfig(reward_mapping=False))
+    finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig(reward_mapping=False))
     batch = make_batch(32)
     metrics = {}
     assert finetuner.mapped_reward(batch, metrics) is batch.reward
@@ -193,11 +194,11 @@ def test_finetuning_freezes_f_b_and_z(kind):
     for seed in range(2):  # a little pre-training first, so nothing is at its initial value
         agent.update(make_batch(32, seed=10 + seed))
     batch = make_batch(64, seed=0)
-    z, _ = agent.infer_z(batch.obs, batch.next_obs, batch.reward[:, 0], quantile=None)
+    z, _ = agent.model.infer_skill(batch.obs, batch.next_obs, batch.reward[:, 0], InferenceConfig(reward_quantile=None))
     f0, b0, actor0 = _params(agent.forward_map), _params(agent.backward_map), _params(agent.actor)
     explore0 = _params(agent.exploration_critic) if kind == "dvfb" else None
     f_grads0 = [None if p.grad is None else p.grad.clone() for p in agent.forward_map.parameters()]
-    finetuner = DualValueFinetuner(agent, z, FinetuneConfig())
+    finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig())
     qf0 = _params(finetuner.task_critic)
     assert all(not p.requires_grad for p in agent.forward_map.parameters())
     assert all(not p.requires_grad for p in agent.backward_map.parameters())
@@ -231,7 +232,7 @@ def test_finetuning_freezes_f_b_and_z(kind):
 
 def test_finetuner_optimizers_cover_only_actor_and_task_critic():
     agent = make_agent()
-    finetuner = DualValueFinetuner(agent, agent.sample_z(1)[0], FinetuneConfig())
+    finetuner = DualValueFinetuner(agent.model, agent.sample_skill(1)[0], FinetuneConfig())
     critic_ids = {id(p) for g in finetuner.critic_optimizer.param_groups for p in g["params"]}
     actor_ids = {id(p) for g in finetuner.actor_optimizer.param_groups for p in g["params"]}
     assert critic_ids == {id(p) for p in finetuner.task_critic.parameters()}
@@ -259,7 +260,7 @@ def test_update_matches_reference_td_target_and_actor_objective(variant):
     agent = make_agent(stddev=0.0)
     z = project_to_sphere(torch.randn(D, generator=torch.Generator().manual_seed(6)))
     config = FinetuneConfig(**VARIANTS[variant])
-    finetuner = DualValueFinetuner(agent, z, config)
+    finetuner = DualValueFinetuner(agent.model, z, config)
     with torch.no_grad():  # a target different from the online critic
         for p in finetuner.task_critic_target.parameters():
             p.add_(0.05 * torch.randn_like(p))
@@ -322,7 +323,7 @@ def test_update_matches_reference_td_target_and_actor_objective(variant):
 def test_adaptive_eta_runs():
     agent = make_agent()
     z = project_to_sphere(torch.randn(D, generator=torch.Generator().manual_seed(8)))
-    finetuner = DualValueFinetuner(agent, z, FinetuneConfig(eta_mode="adaptive", reward_mapping=False))
+    finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig(eta_mode="adaptive", reward_mapping=False))
     actor0 = _params(agent.actor)
     for seed in range(5):
         metrics = finetuner.update(make_batch(32, seed=seed))
@@ -334,13 +335,13 @@ def test_adaptive_eta_runs():
 def test_training_state_round_trip():
     agent = make_agent()
     z = project_to_sphere(torch.randn(D, generator=torch.Generator().manual_seed(9)))
-    finetuner = DualValueFinetuner(agent, z, FinetuneConfig())
+    finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig())
     for seed in range(2):
         finetuner.update(make_batch(32, seed=seed))
     state = copy.deepcopy(finetuner.training_state())
     assert not any(k.startswith("agent.") for k in state["finetuner"])
     other_agent = make_agent()
-    other = DualValueFinetuner(other_agent, torch.zeros(D), FinetuneConfig())
+    other = DualValueFinetuner(other_agent.model, torch.zeros(D), FinetuneConfig())
     other.load_training_state(state)
     assert torch.equal(other.z, finetuner.z)
     assert other.task_reward_stats.count.item() == finetuner.task_reward_stats.count.item()

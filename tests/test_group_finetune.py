@@ -18,8 +18,8 @@ from dvfb.nets.members import member_slice, stack_agents
 from dvfb.protocols import finetuner_class
 from dvfb.data import Batch
 from dvfb.runs import RunDir, load_checkpoint, save_checkpoint
-from dvfb.workflows.finetune import finetune, finetune_group
-from dvfb.workflows.pretrain import pretrain_group
+from dvfb.workflows.finetune import finetune
+from dvfb.workflows.pretrain import pretrain
 from test_members import MEMBERS, NOT_BITWISE, _cast, _members
 from tiny import tiny_run_config
 
@@ -43,9 +43,9 @@ def _finetuners(name: str, dtype: torch.dtype):
             if agent.skill.has_skill:
                 skill = agent.sample_skill(1, generator=torch.Generator().manual_seed(50 + k))[0].to(dtype)
             torch.manual_seed(200 + k)
-            built.append(cls(agent, skill, config))
+            built.append(cls(agent.model, skill, config))
             torch.manual_seed(200 + k)
-            twin_built.append(cls(twin, None if skill is None else skill.clone(), config))
+            twin_built.append(cls(twin.model, None if skill is None else skill.clone(), config))
     finally:
         torch.set_default_dtype(previous)
     return built, twin_built, replays
@@ -57,7 +57,7 @@ def _run(name: str, dtype: torch.dtype):
     torch.set_default_dtype(dtype)
     try:
         group = stack_agents(finetuners)
-        assert group.members == MEMBERS and group.agent.members == MEMBERS
+        assert group.members == MEMBERS and group.model.members == MEMBERS
         needs = twins[0].replay_needs()
         group_metrics, twin_metrics = [], []
         for u in range(UPDATES):
@@ -122,13 +122,13 @@ SCHEDULE = {"seed_frames": 300, "eval_every": 500, "eval_episodes": 1, "update_e
 @pytest.mark.parametrize("agent_name, skill", [("dvfb", None), ("diayn", "resample"), ("rnd", None)])
 def test_group_finetuning_writes_each_members_own_run_close_to_its_separate_run(tmp_path, agent_name, skill):
     paths = [tmp_path / f"p_s{s}" for s in SEEDS]
-    pretrain_group(tiny_run_config(agent_name), SEEDS, paths, progress=False)
+    pretrain(tiny_run_config(agent_name), paths, seeds=SEEDS, progress=False)
     # Ten updates at the end of one episode (its end writes the checkpoint compared here).
     options = {**SCHEDULE, "frames": 1000, "seed_frames": 960, "eval_every": 1000,
                **({"skill": skill} if skill else {})}
     for path in paths:
         finetune(path, MAZE, name="alone", inference=_fast(agent_name), finetune=options, progress=False)
-    runs = finetune_group(paths, MAZE, name="group", inference=_fast(agent_name), finetune=options, progress=False)
+    runs = finetune(paths, MAZE, name="group", inference=_fast(agent_name), finetune=options, progress=False)
     assert [r.path for r in runs] == [p / "finetune" / "group" for p in paths]
     for path in paths:
         alone = json.loads((path / "finetune" / "alone" / "curve.json").read_text())
@@ -157,7 +157,7 @@ def test_group_finetuning_writes_each_members_own_run_close_to_its_separate_run(
 def fb_group(tmp_path_factory):
     root = tmp_path_factory.mktemp("fb_group")
     paths = [root / f"fb_s{s}" for s in SEEDS]
-    pretrain_group(tiny_run_config("fb"), SEEDS, paths, progress=False)
+    pretrain(tiny_run_config("fb"), paths, seeds=SEEDS, progress=False)
     return paths
 
 
@@ -167,11 +167,11 @@ def _finetuner_state(path):
 
 def test_group_finetuning_resume_equals_uninterrupted_group(fb_group):
     inference, options = _fast("fb"), dict(SCHEDULE)
-    finetune_group(fb_group, MAZE, name="full", inference=inference, finetune={**options, "frames": 2000},
+    finetune(fb_group, MAZE, name="full", inference=inference, finetune={**options, "frames": 2000},
                    progress=False)
-    finetune_group(fb_group, MAZE, name="split", inference=inference, finetune={**options, "frames": 1000},
+    finetune(fb_group, MAZE, name="split", inference=inference, finetune={**options, "frames": 1000},
                    progress=False)
-    finetune_group(fb_group, MAZE, name="split", inference=inference, finetune={**options, "frames": 2000},
+    finetune(fb_group, MAZE, name="split", inference=inference, finetune={**options, "frames": 2000},
                    resume=True, progress=False)
     for path in fb_group:
         full = json.loads((path / "finetune" / "full" / "curve.json").read_text())
@@ -186,7 +186,7 @@ def test_group_finetuning_resume_equals_uninterrupted_group(fb_group):
 
 def test_a_non_finite_member_stops_its_fine_tuning_alone(fb_group, capsys):
     inference, options = _fast("fb"), dict(SCHEDULE)
-    finetune_group(fb_group, MAZE, name="nan", inference=inference, finetune={**options, "frames": 1000},
+    finetune(fb_group, MAZE, name="nan", inference=inference, finetune={**options, "frames": 1000},
                    progress=False)
     poisoned = RunDir(fb_group[1] / "finetune" / "nan")
     state = load_checkpoint(poisoned)
@@ -195,7 +195,7 @@ def test_a_non_finite_member_stops_its_fine_tuning_alone(fb_group, capsys):
             state["finetuner"]["finetuner"][key].fill_(float("nan"))
     save_checkpoint(poisoned, state, "resume_1000")
     with pytest.raises(NonFiniteLossError, match="1 of 2 members stopped"):
-        finetune_group(fb_group, MAZE, name="nan", inference=inference, finetune={**options, "frames": 2000},
+        finetune(fb_group, MAZE, name="nan", inference=inference, finetune={**options, "frames": 2000},
                        resume=True, progress=False)
     err = capsys.readouterr().err
     assert f"member seed 1 ({poisoned.path})" in err and "its fine-tuning stopped" in err
@@ -211,7 +211,7 @@ def _cli(*args):
 
 def test_bad_group_fine_tunings_are_one_line_and_create_nothing(tmp_path, fb_group):
     aps = [tmp_path / f"aps_s{s}" for s in SEEDS]  # APS has a task regression
-    pretrain_group(tiny_run_config("aps", frames=1000), SEEDS, aps, progress=False)
+    pretrain(tiny_run_config("aps", frames=1000), aps, seeds=SEEDS, progress=False)
     cases = [
         ([*map(str, aps), "--task", MAZE, "--finetune.skill", "regressed"], "regressed fits each run's skill"),
         ([str(fb_group[0]), str(aps[0]), "--task", MAZE], "is not the same method and configuration"),
@@ -233,5 +233,5 @@ def test_a_member_in_use_is_refused_and_no_members_directory_is_left(fb_group):
     busy = fb_group[1] / "finetune" / "busy"
     with RunLock(busy):  # another writer holds member 1's fine-tuning run
         with pytest.raises(RunDirError, match="in use"):
-            finetune_group(fb_group, MAZE, name="busy", inference=_fast("fb"), finetune=dict(SCHEDULE), progress=False)
+            finetune(fb_group, MAZE, name="busy", inference=_fast("fb"), finetune=dict(SCHEDULE), progress=False)
     assert not (fb_group[0] / "finetune" / "busy").exists()

@@ -16,9 +16,9 @@ from dvfb.errors import NonFiniteLossError
 from dvfb.nets.members import drop_members, member_training_state, stack_agents
 from dvfb.data import Batch
 from dvfb.runs import RunDir, load_checkpoint, load_snapshot, save_checkpoint
-from dvfb.training.metrics import GroupWindow
-from dvfb.workflows.pretrain import pretrain, pretrain_group
-from dvfb.runs.snapshots import load_pretrained_agent
+from dvfb.training.metrics import MetricWindow
+from dvfb.workflows.pretrain import pretrain
+from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run
 from tiny import tiny_run_config
 
@@ -36,14 +36,14 @@ def _replay_rows(path):
 def test_group_members_are_ordinary_runs_close_to_their_separate_runs(tmp_path):
     config = tiny_run_config("dvfb", frames=1000, seed_frames=960)
     paths = [tmp_path / f"group_s{seed}" for seed in SEEDS]
-    runs = pretrain_group(config, SEEDS, paths, progress=False)
+    runs = pretrain(config, paths, seeds=SEEDS, progress=False)
     assert [r.path for r in runs] == paths
     separate = tmp_path / "separate_s1"
     pretrain(dataclasses.replace(config, seed=1), separate, progress=False)
     # An ordinary run: its config has its own seed and its snapshot loads through the registry.
     run = open_run(paths[1])
     assert run.config.seed == 1
-    agent, frames = load_pretrained_agent(run)
+    agent, frames = load_model(run)
     assert frames == 1000 and agent.members == 0
     # The uniform phase is the same data bit for bit; the policy's steps and 10 updates agree to
     # float32 rounding (the stacked products round differently from the separate run's).
@@ -61,11 +61,11 @@ def test_group_members_are_ordinary_runs_close_to_their_separate_runs(tmp_path):
 
 @pytest.mark.parametrize("agent_name", ["dvfb", "diayn", "rnd"])
 def test_group_zeroshot_equals_each_members_own(tmp_path, agent_name):
-    from dvfb.workflows.zeroshot import zeroshot, zeroshot_group
+    from dvfb.workflows.zeroshot import zeroshot
 
     config = tiny_run_config(agent_name, frames=1000)
     paths = [tmp_path / f"z_s{s}" for s in SEEDS]
-    pretrain_group(config, SEEDS, paths, progress=False)
+    pretrain(config, paths, seeds=SEEDS, progress=False)
     task = "point_mass_maze_reach_top_left"
     fast = {"steps": 300, "random_action_steps": 100, "samples": 300, "eval_episodes": 2}
     if agent_name == "diayn":
@@ -73,7 +73,7 @@ def test_group_zeroshot_equals_each_members_own(tmp_path, agent_name):
     elif agent_name == "rnd":
         fast = {"eval_episodes": 2}
     alone = [zeroshot(p, task, inference=fast, progress=False) for p in paths]
-    together = zeroshot_group(paths, task, inference=fast, overwrite=True, progress=False)
+    together = zeroshot(paths, task, inference=fast, overwrite=True, progress=False)
     for a, b in zip(alone, together):
         assert a["z"] == b["z"] and a["seed"] == b["seed"]  # each member's own inference, bit for bit
         # The actions come from the stacked actor (float32 rounding apart from the separate one's).
@@ -85,9 +85,9 @@ def test_group_resume_equals_uninterrupted_group(tmp_path):
     config = tiny_run_config("fb", frames=2000)
     full = [tmp_path / f"full_s{s}" for s in SEEDS]
     split = [tmp_path / f"split_s{s}" for s in SEEDS]
-    pretrain_group(config, SEEDS, full, progress=False)
-    pretrain_group(dataclasses.replace(config, frames=1000), SEEDS, split, progress=False)
-    pretrain_group(config, SEEDS, split, resume=True, progress=False)
+    pretrain(config, full, seeds=SEEDS, progress=False)
+    pretrain(dataclasses.replace(config, frames=1000), split, seeds=SEEDS, progress=False)
+    pretrain(config, split, seeds=SEEDS, resume=True, progress=False)
     for a_path, b_path in zip(full, split):
         a, b = _snapshot_modules(a_path, 2000), _snapshot_modules(b_path, 2000)
         for key in a:
@@ -98,7 +98,7 @@ def test_group_resume_equals_uninterrupted_group(tmp_path):
 def test_a_non_finite_member_stops_alone(tmp_path, capsys):
     config = tiny_run_config("fb", frames=1000)
     paths = [tmp_path / f"m_s{s}" for s in SEEDS]
-    pretrain_group(config, SEEDS, paths, progress=False)
+    pretrain(config, paths, seeds=SEEDS, progress=False)
     # Poison member 1's checkpoint (a real file): its networks hold NaN when the group resumes.
     run = RunDir(paths[1])
     state = load_checkpoint(run, None)
@@ -107,7 +107,7 @@ def test_a_non_finite_member_stops_alone(tmp_path, capsys):
             tensor.fill_(float("nan"))
     save_checkpoint(run, state, f"resume_{state['step']}")
     with pytest.raises(NonFiniteLossError, match=r"1 of 2 members stopped.*seed 1") as failure:
-        pretrain_group(dataclasses.replace(config, frames=1500), SEEDS, paths, resume=True, progress=False)
+        pretrain(dataclasses.replace(config, frames=1500), paths, seeds=SEEDS, resume=True, progress=False)
     assert str(paths[1]) in str(failure.value) and "\n" not in str(failure.value)
     assert "member seed 1" in capsys.readouterr().err
     # Member 0 finished; member 1 kept its intact checkpoint and wrote no snapshot after it.
@@ -124,7 +124,7 @@ def test_group_window_and_drop_keep_the_healthy_members_exact():
     with torch.no_grad():
         group.forward_map.heads.second_weight[1].fill_(float("nan"))
     faults = []
-    window = GroupWindow(lambda: [0, 1, 2], lambda member, message: faults.append((member, message)))
+    window = MetricWindow(None, lambda: [0, 1, 2], lambda member, message: faults.append((member, message)))
     needs = group.replay_needs()
     batches = [needs.sample(r, torch.Generator().manual_seed(k)) for k, r in enumerate(replays)]
     window.add(7, group.update(Batch.stack(batches)))
@@ -192,7 +192,7 @@ def test_group_zeroshot_skip_existing_evaluates_only_the_members_without_a_resul
     from dvfb.workflows.zeroshot import zeroshot
 
     paths = [tmp_path / f"k_s{s}" for s in SEEDS]
-    pretrain_group(tiny_run_config("rnd", frames=1000), SEEDS, paths, progress=False)
+    pretrain(tiny_run_config("rnd", frames=1000), paths, seeds=SEEDS, progress=False)
     task = "point_mass_maze_reach_top_left"
     zeroshot(paths[0], task, inference={"eval_episodes": 1}, progress=False)
     first = (paths[0] / "zeroshot" / f"{task}.json").read_bytes()

@@ -133,7 +133,7 @@ def _stacked_networks(group, batch):
     nets = [("actor", group.actor, (batch.obs, z))]
     if hasattr(group, "forward_map"):
         nets.append(("forward_map", group.forward_map, (batch.obs, batch.action, z)))
-        nets.append(("backward_map", group.backward_map, (group.label_input(batch.obs, batch.next_obs),)))
+        nets.append(("backward_map", group.backward_map, (group.model.label_input(batch.obs, batch.next_obs),)))
     if hasattr(group, "core"):
         nets.append(("critic", group.core.critic, (batch.obs, z, batch.action)))
     return nets

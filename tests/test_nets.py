@@ -105,7 +105,7 @@ def test_backward_norm_is_sqrt_d_in_every_input_mode(mode):
     expected_in = OBS if mode == "state" else 2 * OBS
     assert online_in.shape[-1] == expected_in and target_in.shape[-1] == expected_in
     for values in (agent.backward_map(online_in), agent.backward_target(target_in),
-                   agent.backward_features(batch.obs, batch.next_obs)):
+                   agent.model.backward_features(batch.obs, batch.next_obs)):
         assert values.shape == (64, D)
         torch.testing.assert_close(values.norm(dim=-1), torch.full((64,), math.sqrt(D)), atol=1e-5, rtol=0)
 
@@ -271,11 +271,11 @@ def test_training_action_noise_is_reparameterised():
 def test_mean_action_is_deterministic_and_rollout_is_stochastic():
     torch.manual_seed(0)
     agent = FBAgent(OBS, ACT, tiny_config())
-    obs, z = np.random.default_rng(0).standard_normal(OBS).astype(np.float32), agent.sample_z(1)[0]
+    obs, z = np.random.default_rng(0).standard_normal((1, OBS)).astype(np.float32), agent.sample_skill(1)
     a1, a2 = agent.act(obs, z, explore=False), agent.act(obs, z, explore=False)
-    assert np.array_equal(a1, a2)
+    assert np.array_equal(a1, a2) and a1.shape == (1, ACT)
     with torch.no_grad():
-        mu = agent.actor(torch.as_tensor(obs)[None], z[None])[0].numpy()
+        mu = agent.actor(torch.as_tensor(obs), z).numpy()
     np.testing.assert_allclose(a1, mu, rtol=0, atol=1e-6)  # numpy acting path vs the torch module
     e1, e2 = agent.act(obs, z, explore=True), agent.act(obs, z, explore=True)
     assert not np.array_equal(e1, e2)
@@ -343,16 +343,15 @@ def test_host_actor_rebinds_when_a_parameter_storage_is_replaced():
 
 
 def test_act_follows_a_replaced_actor_module():
-    agent = FBAgent(OBS, ACT, tiny_config())
+    model = FBAgent(OBS, ACT, tiny_config()).model
     obs, z = _actor_inputs(1)
-    agent.act(obs[0], torch.as_tensor(z[0]), explore=False)
+    model.act(obs, torch.as_tensor(z), explore=False)
     torch.manual_seed(7)
-    agent.actor = Actor(OBS, D, ACT, H, E)
+    model.actor = Actor(OBS, D, ACT, H, E)
     with torch.no_grad():
-        expected = agent.actor(torch.as_tensor(obs), torch.as_tensor(z))[0].numpy()
-    np.testing.assert_allclose(agent.act(obs[0], torch.as_tensor(z[0]), explore=False), expected,
-                               rtol=0, atol=2e-6)
-    assert agent._host_actor is not None and agent._host_actor.actor is agent.actor  # the numpy path ran
+        expected = model.actor(torch.as_tensor(obs), torch.as_tensor(z)).numpy()
+    np.testing.assert_allclose(model.act(obs, torch.as_tensor(z), explore=False), expected, rtol=0, atol=2e-6)
+    assert model._hosts[0].actor is model.actor  # the numpy path ran
 
 
 def test_host_actor_rejects_non_float32_actors():
@@ -361,13 +360,13 @@ def test_host_actor_rejects_non_float32_actors():
 
 
 def test_act_noise_comes_from_torch_generator_like_the_torch_path():
-    agent = FBAgent(OBS, ACT, tiny_config())
+    model = FBAgent(OBS, ACT, tiny_config()).model
     obs, z = _actor_inputs(1)
-    z_t = torch.as_tensor(z[0])
+    z_t = torch.as_tensor(z)
     torch.manual_seed(123)
-    host_actions = [agent.act(obs[0], z_t, explore=True) for _ in range(3)]
+    host_actions = [model.act(obs, z_t, explore=True) for _ in range(3)]
     torch.manual_seed(123)
-    torch_actions = [agent._act_torch(obs[0], z_t, explore=True) for _ in range(3)]
+    torch_actions = [model._act_torch(obs, z_t, explore=True) for _ in range(3)]
     np.testing.assert_allclose(np.stack(host_actions), np.stack(torch_actions), rtol=0, atol=2e-6)
 
 

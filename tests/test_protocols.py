@@ -106,7 +106,7 @@ def test_skill_selection_keeps_the_best_episode_and_records_every_candidate(cand
         z = torch.tensor(candidate["skill"])
         total, done = 0.0, False
         while not done:
-            obs, reward, terminated, truncated, _ = replay_env.step(agent.act(obs, z, explore=False))
+            obs, reward, terminated, truncated, _ = replay_env.step(agent.act(obs[None], z[None], explore=False)[0])
             total += float(reward)
             done = terminated or truncated
         assert total == pytest.approx(candidate["return"], abs=1e-9)
@@ -125,7 +125,7 @@ def test_urlb_fine_tuning_skill_modes():
         torch.manual_seed(0)
         config = tiny_run_config(agent_name)
         agent = make_agent(agent_name, 4, 2, config, "cpu")
-        return agent, DDPGFinetuner(agent, agent.sample_skill(1)[0], DDPGFinetuneConfig(**options))
+        return agent, DDPGFinetuner(agent.model, agent.sample_skill(1)[0], DDPGFinetuneConfig(**options))
 
     agent, selected = finetuner("diayn")
     chosen = selected.skill.clone()
@@ -186,8 +186,8 @@ def test_an_agent_with_a_run_generator_draws_nothing_from_the_global_stream(agen
         generator = torch.Generator().manual_seed(5)
         agent.use_generator(generator)
         torch.manual_seed(global_seed)
-        obs = np.zeros(4, np.float32)
-        skill = agent.sample_skill(1)[0]
+        obs = np.zeros((1, 4), np.float32)
+        skill = agent.sample_skill(1)
         action = agent.act(obs, skill, explore=True)
         agent.update(agent.replay_needs().sample(replay, generator))
         results.append((skill, action, [p.detach().clone() for p in agent.parameters()]))

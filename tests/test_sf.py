@@ -114,7 +114,7 @@ def test_every_feature_learner_is_registered_with_its_paper_name():
 
 def test_td_loss_by_hand_uses_the_smaller_target_head_and_the_projections():
     agent, b = tiny_agent("lap"), random_batch(4)
-    z = agent.sample_z(N).double()
+    z = agent.sample_skill(N).double()
     next_phi = agent.features(b.next_obs)
     gen_state = torch.random.get_rng_state()
     losses = agent.sf_losses(b, z, next_phi)
@@ -137,7 +137,7 @@ def test_td_loss_by_hand_uses_the_smaller_target_head_and_the_projections():
 
 def test_the_td_loss_does_not_train_the_features_and_the_feature_loss_not_psi():
     agent, b = tiny_agent("lra_p"), random_batch(5)
-    z = agent.sample_z(N).double()
+    z = agent.sample_skill(N).double()
     losses = agent.sf_losses(b, z, agent.features(b.next_obs))
     grads = torch.autograd.grad(losses["sf_loss"], list(agent.feature_learner.parameters()), allow_unused=True)
     assert all(g is None for g in grads)
@@ -171,7 +171,7 @@ def test_the_regression_recovers_a_planted_linear_reward():
     agent = SFAgent(OBS, ACT, SFConfig(z_dim=D, hidden_dim=H, feature_dim=E_, backward_hidden_dim=H, batch_size=N))
     obs, next_obs = torch.randn(400, OBS, generator=g), torch.randn(400, OBS, generator=g)
     reward = agent.features(next_obs).detach() @ w
-    z, info = agent.infer_skill(obs, next_obs, reward.unsqueeze(-1), None)
+    z, info = agent.model.infer_skill(obs, next_obs, reward.unsqueeze(-1), None)
     assert info["fallback"] is None
     torch.testing.assert_close(z, math.sqrt(D) * w / w.norm(), rtol=1e-4, atol=1e-4)
 

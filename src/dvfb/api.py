@@ -1,4 +1,4 @@
-"""The Python API: ``dvfb.load(run_dir)`` gives a pre-trained agent to infer a task and act with.
+"""The Python API: ``dvfb.load(run_dir)`` gives a pre-trained model to infer a task and act with.
 
     import dvfb
     model = dvfb.load("runs/dvfb_walker_small_s0")
@@ -6,7 +6,8 @@
     act = model.policy(z)
     action = act(obs)
 
-The object wraps the run's agent (through the registry, any method) and the zero-shot machinery of
+The object holds the run's model (:class:`~dvfb.agents.base.Model`, through the registry, any method:
+its networks for acting and inference, no optimiser) and uses the zero-shot machinery of
 :mod:`dvfb.workflows.zeroshot`; it writes nothing into the run directory.
 """
 
@@ -20,21 +21,22 @@ import torch
 
 from dvfb.agents import get_spec
 from dvfb.errors import ConfigError
-from dvfb.runs.snapshots import load_pretrained_agent
+from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run
+from dvfb.workflows.zeroshot import infer_from_reward_fn, run_protocol
 
 
-class PretrainedAgent:
-    """A pre-training run's agent, loaded from a snapshot (the newest by default).
+class PretrainedModel:
+    """A pre-training run's model, loaded from a snapshot (the newest by default): ``model``.
 
-    ``infer_z`` turns a task into the agent's skill (methods that infer skills: FB, DVFB);
+    ``infer_z`` turns a task into the model's skill (methods that infer skills: the FB family, SF);
     ``act`` and ``policy`` act with a skill, or without one for single-policy methods.
     """
 
     def __init__(self, run_dir: str | Path, snapshot: int | None = None, device: str | None = None):
         self.run = open_run(run_dir)
         self.config = self.run.config
-        self.agent, self.snapshot = load_pretrained_agent(self.run, snapshot, device)
+        self.model, self.snapshot = load_model(self.run, snapshot, device)
         self.spec = get_spec(self.config.agent)
 
     @property
@@ -51,20 +53,18 @@ class PretrainedAgent:
 
         ``inference`` overrides the run's inference options (e.g. ``reward_quantile=None``).
         """
-        from dvfb.workflows.zeroshot import infer_from_reward_fn, run_protocol
-
         given = [rewards is not None, reward_fn is not None, goal is not None]
         if sum(given) != 1:
             raise ConfigError("infer_z needs exactly one of (obs, next_obs, rewards), reward_fn= or goal=")
-        if not self.agent.skill.has_skill:
+        if not self.model.skill.has_skill:
             raise ConfigError(f"{self.name!r} has a single policy and no skill to infer; call policy() without z")
         protocol = run_protocol(self.config, inference)
         protocol.check_source("goal" if goal is not None else "reward_fn", self.name)
-        device = self.agent.device
+        device = self.model.device
         if goal is not None:
-            return protocol.skill_from_goal(self.agent, goal)[0]
+            return protocol.skill_from_goal(self.model, goal)[0]
         if reward_fn is not None:
-            return infer_from_reward_fn(self.agent, self.run, self.config, reward_fn, protocol)[0]
+            return infer_from_reward_fn(self.model, self.run, reward_fn, protocol)[0]
         if obs is None or next_obs is None:
             raise ConfigError("infer_z from samples needs obs, next_obs and rewards")
 
@@ -73,36 +73,36 @@ class PretrainedAgent:
 
         obs_t, next_t, reward_t = tensor(obs), tensor(next_obs), tensor(rewards).reshape(-1)
         for name, value in (("obs", obs_t), ("next_obs", next_t)):
-            if value.dim() != 2 or value.shape[1] != self.agent.obs_dim:
-                raise ConfigError(f"{name} has shape {tuple(value.shape)}; it must be (N, {self.agent.obs_dim}), one "
+            if value.dim() != 2 or value.shape[1] != self.model.obs_dim:
+                raise ConfigError(f"{name} has shape {tuple(value.shape)}; it must be (N, {self.model.obs_dim}), one "
                                   f"{self.config.domain} observation per row")
         if not (obs_t.shape[0] == next_t.shape[0] == reward_t.shape[0]):
             raise ConfigError(f"obs, next_obs and rewards have {obs_t.shape[0]}, {next_t.shape[0]} and "
                               f"{reward_t.shape[0]} rows; they must match")
-        return protocol.skill_from_samples(self.agent, obs_t, next_t, reward_t)[0]
+        return protocol.skill_from_samples(self.model, obs_t, next_t, reward_t)[0]
 
     def act(self, obs: np.ndarray, z: torch.Tensor | None = None, explore: bool = False) -> np.ndarray:
         """One action: the policy's mean (or a rollout sample with ``explore``)."""
-        if z is None and self.agent.skill_dim:
+        if z is None and self.model.skill_dim:
             raise ConfigError(f"{self.name!r} acts with a skill: pass z (from infer_z)")
-        if z is not None and not self.agent.skill_dim:
+        if z is not None and not self.model.skill_dim:
             raise ConfigError(f"{self.name!r} has a single policy and takes no z; call act(obs) without it")
         if z is not None:
             z = torch.as_tensor(np.asarray(z) if not isinstance(z, torch.Tensor) else z, dtype=torch.float32)
-            if z.numel() != self.agent.skill_dim:
-                raise ConfigError(f"z has {z.numel()} values; {self.name!r}'s skill has {self.agent.skill_dim}")
-            z = z.reshape(-1).to(self.agent.device)
+            if z.numel() != self.model.skill_dim:
+                raise ConfigError(f"z has {z.numel()} values; {self.name!r}'s skill has {self.model.skill_dim}")
+            z = z.reshape(-1).to(self.model.device)
         obs = np.asarray(obs, dtype=np.float32)
-        if obs.shape != (self.agent.obs_dim,):
+        if obs.shape != (self.model.obs_dim,):
             raise ConfigError(f"obs has shape {obs.shape}; a {self.config.domain} observation has "
-                              f"{self.agent.obs_dim} values")
-        return self.agent.act(obs, z, explore)
+                              f"{self.model.obs_dim} values")
+        return self.model.act(obs[None], None if z is None else z[None], explore)[0]
 
     def policy(self, z: torch.Tensor | None = None, explore: bool = False) -> Callable[[np.ndarray], np.ndarray]:
         """``obs -> action`` with the skill fixed."""
         return lambda obs: self.act(obs, z, explore)
 
 
-def load(run_dir: str | Path, snapshot: int | None = None, device: str | None = None) -> PretrainedAgent:
-    """Load a pre-training run's agent (see :class:`PretrainedAgent`)."""
-    return PretrainedAgent(run_dir, snapshot, device)
+def load(run_dir: str | Path, snapshot: int | None = None, device: str | None = None) -> PretrainedModel:
+    """Load a pre-training run's model (see :class:`PretrainedModel`)."""
+    return PretrainedModel(run_dir, snapshot, device)

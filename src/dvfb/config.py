@@ -42,8 +42,10 @@ def param(default: Any, help: str, choices: tuple | None = None, *, at_least: fl
 
 
 def flag_name(path: str) -> str:
-    """The command-line flag of a config field path: ``fb.batch_size`` -> ``--fb.batch-size``."""
-    return "--" + path.replace("_", "-")
+    """The command-line flag of a config field path: sections keep their underscores, the field name
+    gets dashes (``fb.batch_size`` -> ``--fb.batch-size``, ``icm_apt.rep_dim`` -> ``--icm_apt.rep-dim``)."""
+    *sections, name = path.split(".")
+    return "--" + ".".join([*sections, name.replace("_", "-")])
 
 
 def _range_text(bounds: dict) -> str:
@@ -178,6 +180,66 @@ def replace(config: T, **changes: Any) -> T:
 
 # ---------------------------------------------------------------------------------------------
 # argparse bridge
+
+
+def canonical_key(key: str) -> str:
+    """``fb.hidden-dim`` -> ``fb.hidden_dim`` (config field names never contain dashes)."""
+    return key.strip().lstrip("-").replace("-", "_")
+
+
+def field_type(cls: type, key: str) -> Any | None:
+    """The declared type of the dotted field ``key`` of the config class ``cls``; None if absent."""
+    tp: Any = cls
+    for part in key.split("."):
+        if not (isinstance(tp, type) and dataclasses.is_dataclass(tp)):
+            return None
+        hints = typing.get_type_hints(tp)
+        if part not in hints or part not in {f.name for f in dataclasses.fields(tp)}:
+            return None
+        tp = hints[part]
+    return tp
+
+
+def _strip_optional(tp: Any) -> tuple[Any, bool]:
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        return [a for a in typing.get_args(tp) if a is not type(None)][0], True
+    return tp, False
+
+
+def is_list_type(tp: Any) -> bool:
+    return typing.get_origin(_strip_optional(tp)[0]) in (list, tuple)
+
+
+def parse_text(key: str, tp: Any, text: str) -> Any:
+    """A command-line value of the dotted field ``key`` as its declared type ``tp``, as the flags of
+    :func:`add_arguments` parse it (a list: comma-separated values)."""
+    base, optional = _strip_optional(tp)
+    text = text.strip()
+    if optional and text.lower() in ("none", "null"):
+        return None
+    if typing.get_origin(base) in (list, tuple):
+        inner = typing.get_args(base)[0]
+        return [parse_text(key, inner, item) for item in text.split(",") if item.strip()]
+    try:
+        if base is bool:
+            return _parse_bool(text)
+        if base in (int, float, str):
+            return base(text)
+    except (ValueError, argparse.ArgumentTypeError):
+        raise ConfigError(f"{flag_name(key)}: {text!r} is not a valid {getattr(base, '__name__', base)}") from None
+    return text
+
+
+def format_value(value: Any) -> str:
+    """The command-line text of a typed value; :func:`parse_text` reads it back exactly."""
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return ",".join(format_value(v) for v in value)
+    return repr(value) if isinstance(value, float) else str(value)
+
 
 
 def _parse_bool(text: str) -> bool:

@@ -1,15 +1,17 @@
 """Agents: one module per method, each registering its :class:`~dvfb.agents.registry.AgentSpec`.
 
-The workflows use agents only through :class:`~dvfb.agents.base.Agent` and the registry
-(:func:`make_agent`, :func:`get_spec`). Importing this package registers every method: a new
-method adds one import line below (docs/adding_a_method.md).
+A method is a model (:class:`~dvfb.agents.base.Model`: what a pre-trained agent is used with) and a
+learner (:class:`~dvfb.agents.base.Agent`: how it is trained without rewards). The layers above use
+them only through those interfaces and the registry (:func:`make_agent`, :func:`make_model`,
+:func:`get_spec`). Importing this package registers every method: a new method adds one import line
+below (docs/adding_a_method.md).
 """
 
 from __future__ import annotations
 
 import torch
 
-from dvfb.agents.base import Agent, ReplayNeeds
+from dvfb.agents.base import Agent, Model, ReplayNeeds, TrainingSettings
 from dvfb.agents.registry import AGENTS, AgentSpec, agent_names, get_spec, register
 
 # Registration: one line per method.
@@ -36,9 +38,14 @@ from dvfb.execution import PerfConfig  # noqa: E402
 
 
 def make_agent(name: str, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> Agent:
-    """Build the registered agent ``name`` from a run config (its sections and ``perf``)."""
+    """Build the learner of the registered method ``name`` from a run config (its sections and ``perf``)."""
     return get_spec(name).agent_cls.from_config(obs_dim, action_dim, config, device)
 
 
-__all__ = ["AGENTS", "Agent", "AgentSpec", "DVFBAgent", "ExplorationConfig", "FBAgent", "FBConfig", "PerfConfig",
-           "ReplayNeeds", "agent_names", "get_spec", "make_agent", "register"]
+def make_model(name: str, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> Model:
+    """Build the model of the registered method ``name`` alone (no optimiser): what a snapshot loads into."""
+    return get_spec(name).agent_cls.model_from_config(obs_dim, action_dim, config, device)
+
+
+__all__ = ["AGENTS", "Agent", "AgentSpec", "DVFBAgent", "ExplorationConfig", "FBAgent", "FBConfig", "Model", "PerfConfig",
+           "ReplayNeeds", "TrainingSettings", "agent_names", "get_spec", "make_agent", "make_model", "register"]

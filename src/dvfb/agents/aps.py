@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGCore, IntrinsicDDPGAgent
+from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGCore, DDPGModel, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.nets import TwinCritic, call_network
 from dvfb.nets.members import with_head_axis
@@ -29,10 +29,20 @@ class APSCore(DDPGCore):
         return (psi * with_head_axis(skill, self.members)).sum(dim=-1, keepdim=True)  # (K, N, 1)
 
 
+class APSModel(DDPGModel):
+    """APS's pre-trained agent: the core and its reward module, whose features regress a task's
+    rewards into a skill (URLB's fine-tuning task regression)."""
+
+    def regress_skill(self, obs: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return self.intrinsic.regress_task(obs, reward, self.net_runner)
+
+
 class APSAgent(IntrinsicDDPGAgent):
     name = "aps"
     reward_section = "aps"
     core_cls = APSCore
+    model_cls = APSModel
 
     def declare_skill(self) -> SkillSpec:
         c = self.reward_config
@@ -40,10 +50,6 @@ class APSAgent(IntrinsicDDPGAgent):
 
     def build_reward(self) -> APSReward:
         return APSReward(self.obs_dim, self.skill.dim, self.reward_config)
-
-    def regress_skill(self, obs: torch.Tensor, reward: torch.Tensor) -> torch.Tensor:
-        with torch.no_grad():
-            return self.intrinsic.regress_task(obs, reward, self.net_runner)
 
 
 register(AgentSpec(

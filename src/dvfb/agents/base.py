@@ -1,23 +1,26 @@
-"""The one interface between the workflows and every method (docs/methods.md, "The agent interface").
+"""The two interfaces between the layers above and every method (docs/methods.md, "The agent
+interface"; docs/architecture.md, "Models and learners").
 
-A workflow (pre-training, zero-shot, fine-tuning, the analyses) sees an agent only through
-:class:`Agent`:
+A method is a :class:`Model` and a learner (:class:`Agent`):
 
-* **skills** -- ``skill``, the method's :class:`~dvfb.skills.SkillSpec` (kind, width, prior,
-  resampling rule); :meth:`Agent.sample_skill` draws from the prior; the training loop redraws
-  when ``skill.due(step, episode_start)`` says so;
-* **acting** -- :meth:`Agent.act` for one observation and an optional skill, a rollout sample or
-  the mean;
-* **learning** -- :meth:`Agent.replay_needs` says how to sample the replay (batch size, discount,
-  n-step, whether ``s_{t+2}`` is needed), :meth:`Agent.update` takes one batch and returns
-  detached metric tensors;
-* **state** -- :meth:`Agent.pretrained_modules` (what a snapshot keeps),
-  :meth:`Agent.training_state` / :meth:`Agent.load_training_state` (networks, statistics and
-  optimisers, for exact resume);
-* **downstream** -- the method's family chooses the zero-shot strategy and the fine-tuner in its
-  :class:`~dvfb.agents.registry.AgentSpec`; families that infer a skill from reward-labelled data
-  implement :meth:`Agent.infer_skill` (and :meth:`Agent.skill_from_goal` where it makes sense).
+* the **model** holds what a pre-trained agent is used with -- its networks for acting and for
+  zero-shot inference -- and nothing of its training: its skill (:class:`~dvfb.skills.SkillSpec`:
+  kind, width, prior, resampling rule) and :meth:`Model.sample_skill`; one batched
+  :meth:`Model.act` (``obs (B, O)``, ``skills (B, d)`` -> ``(B, U)``: a rollout sample or the
+  mean); the family's inference (:meth:`Model.infer_skill`, :meth:`Model.skill_from_goal`,
+  :meth:`Model.regress_skill`, :meth:`Model.skill_value`); and the modules a snapshot loads
+  (:meth:`Model.snapshot_modules`). Zero-shot protocols, fine-tuners, ``dvfb.load`` and the analyses
+  use models only.
+* the **learner** (:class:`Agent`) trains a model without rewards: it owns the model (its
+  networks are registered on the learner under their own names, so a learner's state is a flat
+  dict as it always was), the target networks, the optimisers and the components a method
+  composes, and :meth:`Agent.update`; :meth:`Agent.replay_needs` says how to sample the replay,
+  :meth:`Agent.pretrained_modules` what a snapshot keeps, :meth:`Agent.training_state` what a resume
+  checkpoint keeps. Acting and the skill are the model's.
+* **downstream** -- the method's family chooses the zero-shot protocol and the fine-tuner in its
+  :class:`~dvfb.agents.registry.AgentSpec`.
 """
+
 
 from __future__ import annotations
 
@@ -28,9 +31,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from dvfb.data import Batch
 from dvfb.errors import ConfigError
 from dvfb.nets import ACTION_EPS, HostActor, rollout_action
-from dvfb.data import Batch
 from dvfb.skills import NO_SKILL, SkillSpec
 
 
@@ -53,26 +56,43 @@ class ReplayNeeds:
                              generator=generator)
 
 
-class Agent(nn.Module):
-    """Base class of every method. Subclasses set ``name``, build ``self.actor`` (an
-    :class:`~dvfb.nets.Actor`) and implement :meth:`from_config`, :meth:`replay_needs`,
-    :meth:`update`, :meth:`optimizers` and :meth:`pretrained_modules`."""
+@dataclass(frozen=True)
+class TrainingSettings:
+    """What a fine-tuner reuses from the configuration its model was pre-trained with: the widths of a
+    fresh critic, the batch, the optimiser and the policy noise (every family's config has them)."""
+
+    hidden_dim: int
+    batch_size: int
+    lr: float
+    fused_adam: bool
+    discount: float
+    tau: float
+    stddev: float
+    stddev_clip: float
+
+    @classmethod
+    def of(cls, config: Any) -> TrainingSettings:
+        """The settings of a family's config section (FBConfig, SFConfig, DDPGConfig)."""
+        return cls(**{f: getattr(config, f) for f in cls.__dataclass_fields__})
+
+
+class Model(nn.Module):
+    """Base class of every method's inference model (see the module docstring). Subclasses build
+    ``self.actor`` (an :class:`~dvfb.nets.Actor`), set ``skill``, ``settings`` and ``net_runner``
+    and implement :meth:`snapshot_modules` and the inference their family has."""
 
     name: ClassVar[str] = ""
     skill: SkillSpec = NO_SKILL
-    # The run's random stream (Agent.use_generator); None: torch's global one.
+    # The run's random stream (Model.use_generator); None: torch's global one.
     generator: torch.Generator | None = None
-    # 0: an ordinary agent; N: a group of N members on stacked tensors (dvfb.nets.members, docs/members.md).
+    # 0: an ordinary model; N: a group of N members on stacked tensors (dvfb.nets.members, docs/members.md).
     members: int = 0
     obs_dim: int
     action_dim: int
     device: torch.device
     actor: nn.Module
-
-    @classmethod
-    def from_config(cls, obs_dim: int, action_dim: int, config: Any, device: str | torch.device = "cpu") -> Agent:
-        """Build the agent from a run config (its sections and ``perf``)."""
-        raise NotImplementedError
+    settings: TrainingSettings
+    net_runner: Any  # dvfb.execution.NetRunner: how its networks execute (precision, compilation)
 
     # Skills ------------------------------------------------------------------------------------
     @property
@@ -83,89 +103,76 @@ class Agent(nn.Module):
     def sample_skill(self, n: int = 1, generator: torch.Generator | None = None) -> torch.Tensor | None:
         """``n`` draws of the method's skill prior, ``(n, skill_dim)``; None without skills.
 
-        ``generator``: the caller's random stream (None: the agent's, see :meth:`use_generator`).
+        ``generator``: the caller's random stream (None: the model's, see :meth:`use_generator`).
         Methods whose skill kind is ``method`` override this.
         """
         return self.skill.sample(n, self.device, generator if generator is not None else self.generator)
 
     def use_generator(self, generator: torch.Generator | None) -> None:
-        """Draw every random number of this agent (skills, policy noise, the modules' samples) from
+        """Draw every random number of this model (skills, policy noise, its modules' samples) from
         ``generator``, the run's own stream, instead of torch's global one."""
         for module in self.modules():
             if hasattr(module, "generator"):
                 module.generator = generator
 
-    # Learning ----------------------------------------------------------------------------------
-    def replay_needs(self) -> ReplayNeeds:
-        raise NotImplementedError
-
-    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
-        raise NotImplementedError
-
     # Acting ------------------------------------------------------------------------------------
     @property
     def policy_stddev(self) -> float:
         """The fixed standard deviation of rollout actions (§3.3 of docs/methods.md)."""
-        raise NotImplementedError
-
-    def act(self, obs: np.ndarray, skill: torch.Tensor | None, explore: bool) -> np.ndarray:
-        """One action for one observation: a rollout sample if ``explore``, else the mean (§3.3).
-
-        Runs in float32 whatever ``perf`` says (batch 1: per-op overhead, not FLOPs). On the CPU
-        the mean comes from :class:`~dvfb.nets.HostActor` (numpy on the actor's own parameter
-        storage, several times faster than the torch modules at batch 1; bench/README.md); the
-        exploration noise is still drawn from torch's generator, so the random stream is the same
-        on every path.
-        """
-        if self.device.type != "cpu":
-            return self._act_torch(obs, skill, explore)
-        host = getattr(self, "_host_actor", None)
-        if host is None or host.actor is not self.actor:
-            host = self._host_actor = HostActor(self.actor)  # first call, or the actor module was replaced
-        skill_np = skill.detach().numpy() if skill is not None else np.zeros(0, dtype=np.float32)
-        action = host(obs, skill_np)
-        if explore:
-            # rollout_action's math: clamp(mu + sigma * eps), eps ~ N(0, 1) from torch's stream.
-            action += torch.randn(1, self.action_dim, generator=self.generator).numpy()[0] * np.float32(self.policy_stddev)
-            np.minimum(action, np.float32(1 - ACTION_EPS), out=action)
-            np.maximum(action, np.float32(-1 + ACTION_EPS), out=action)
-        return action
+        return self.settings.stddev
 
     @torch.inference_mode()
-    def act_members(self, obs: np.ndarray, skill: torch.Tensor | None, explore: bool) -> np.ndarray:
-        """A group's actions (docs/members.md): member k's for its observation ``obs[k]`` and skill
-        ``skill[k]``, ``(M, action_dim)``, from one batched actor forward; member k's exploration
-        noise comes from its own stream, as its separate run's :meth:`act` draws it."""
+    def act(self, obs: np.ndarray, skills: torch.Tensor | None, explore: bool) -> np.ndarray:
+        """Actions for a batch of observations ``obs (B, O)`` with skills ``skills (B, d)`` (None
+        without skills): rollout samples if ``explore``, else the means (§3.3); ``(B, U)``.
+
+        An ordinary model acts every row; a group's (docs/members.md) row k is member k's, with its
+        own stream's noise. Runs in float32 whatever ``perf`` says (batch 1: per-op overhead, not
+        FLOPs). On the CPU every row acts as a separate call at batch 1 does: the mean from
+        :class:`~dvfb.nets.HostActor` (numpy on the actor's own parameter storage, several times
+        faster than the torch modules at batch 1; bench/README.md), the noise drawn from the row's
+        torch stream, so the random stream is the same on every path.
+        """
+        obs = np.asarray(obs, dtype=np.float32)
         if self.device.type == "cpu":
-            return self._act_members_host(obs, skill, explore)
-        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(1)
-        skill_t = skill.unsqueeze(1) if skill is not None else obs_t.new_zeros(obs_t.shape[0], 1, 0)
+            return self._act_host(obs, skills, explore)
+        return self._act_torch(obs, skills, explore)
+
+    @torch.inference_mode()
+    def _act_torch(self, obs: np.ndarray, skills: torch.Tensor | None, explore: bool) -> np.ndarray:
+        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+        if self.members:
+            obs_t = obs_t.unsqueeze(1)
+            skill_t = skills.unsqueeze(1) if skills is not None else obs_t.new_zeros(obs_t.shape[0], 1, 0)
+        else:
+            skill_t = skills.reshape(obs_t.shape[0], -1) if skills is not None else obs_t.new_zeros(obs_t.shape[0], 0)
         mean = self.actor(obs_t, skill_t)
         action = rollout_action(mean, self.policy_stddev, self.generator) if explore else mean
-        return action[:, 0].cpu().numpy()
+        return (action[:, 0] if self.members else action).cpu().numpy()
 
-    def _act_members_host(self, obs: np.ndarray, skill: torch.Tensor | None, explore: bool) -> np.ndarray:
-        # On the CPU each member acts as its separate run does (HostActor on its slice of the
-        # stacked actor, noise from its stream): at batch 1 numpy beats any batched torch call.
-        hosts = getattr(self, "_member_hosts", None)
-        if hosts is None or len(hosts) != self.members or hosts[0].actor is not self.actor:
-            hosts = self._member_hosts = [HostActor(self.actor, k) for k in range(self.members)]
-        skills = skill.detach().numpy() if skill is not None else np.zeros((len(hosts), 0), dtype=np.float32)
-        actions = np.stack([host(o, z) for host, o, z in zip(hosts, obs, skills)])
-        if explore:
-            for action, generator in zip(actions, self.generator):
-                action += torch.randn(1, self.action_dim, generator=generator).numpy()[0] * np.float32(self.policy_stddev)
+    def _act_host(self, obs: np.ndarray, skills: torch.Tensor | None, explore: bool) -> np.ndarray:
+        rows = obs.shape[0]
+        hosts = getattr(self, "_hosts", None)
+        count = self.members or 1
+        if hosts is None or len(hosts) != count or hosts[0].actor is not self.actor:
+            # First call, a new member count, or the actor module was replaced.
+            hosts = self._hosts = ([HostActor(self.actor, k) for k in range(self.members)] if self.members
+                                   else [HostActor(self.actor)])
+        if self.members and rows != self.members:
+            raise ValueError(f"a group of {self.members} members acts on {self.members} rows, got {rows}")
+        skill_rows = skills.detach().cpu().numpy() if skills is not None else np.zeros((rows, 0), dtype=np.float32)
+        generators = self.generator if self.members else [self.generator] * rows
+        actions = np.empty((rows, self.action_dim), dtype=np.float32)
+        for k in range(rows):
+            action = (hosts[k] if self.members else hosts[0])(obs[k], skill_rows[k])
+            if explore:
+                # rollout_action's math: clamp(mu + sigma * eps), eps ~ N(0, 1) from the row's stream.
+                noise = torch.randn(1, self.action_dim, generator=generators[k]).numpy()[0]
+                action += noise * np.float32(self.policy_stddev)
                 np.minimum(action, np.float32(1 - ACTION_EPS), out=action)
                 np.maximum(action, np.float32(-1 + ACTION_EPS), out=action)
+            actions[k] = action
         return actions
-
-    @torch.inference_mode()
-    def _act_torch(self, obs: np.ndarray, skill: torch.Tensor | None, explore: bool) -> np.ndarray:
-        obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device).unsqueeze(0)
-        skill_t = skill.reshape(1, -1) if skill is not None else obs_t.new_zeros(1, 0)
-        mean = self.actor(obs_t, skill_t)
-        action = rollout_action(mean, self.policy_stddev, self.generator) if explore else mean
-        return action[0].cpu().numpy()
 
     # Zero-shot (families that infer a skill from data) ----------------------------------------
     def infer_skill(self, obs: torch.Tensor, next_obs: torch.Tensor, reward: torch.Tensor,
@@ -200,12 +207,90 @@ class Agent(nn.Module):
         """What to tell a user whose update produced these non-finite metrics ("" for nothing)."""
         return ""
 
+    # Snapshots ---------------------------------------------------------------------------------
+    def snapshot_modules(self) -> dict[str, nn.Module]:
+        """The modules the model loads from a snapshot, under the snapshot's names."""
+        raise NotImplementedError
+
+    def load_snapshot(self, modules: dict) -> None:
+        """Load the model's modules from a snapshot's state dicts (``snapshot["modules"]``)."""
+        for key, module in self.snapshot_modules().items():
+            module.load_state_dict(modules[key])
+
+
+class Agent(nn.Module):
+    """Base class of every method's learner (see the module docstring). Subclasses set ``name``,
+    build their model and :meth:`adopt` it, and implement :meth:`from_config`,
+    :meth:`replay_needs`, :meth:`update`, :meth:`optimizers` and :meth:`pretrained_modules`."""
+
+    name: ClassVar[str] = ""
+    # The run's random stream (Agent.use_generator); None: torch's global one.
+    generator: torch.Generator | None = None
+    # 0: an ordinary learner; N: a group of N members on stacked tensors (docs/members.md).
+    members: int = 0
+    model: Model
+    # The model's (Agent.adopt copies them): what the layers above read of a learner.
+    skill: SkillSpec = NO_SKILL
+    obs_dim: int
+    action_dim: int
+    device: torch.device
+    net_runner: Any
+
+    @classmethod
+    def from_config(cls, obs_dim: int, action_dim: int, config: Any, device: str | torch.device = "cpu") -> Agent:
+        """Build the learner from a run config (its sections and ``perf``)."""
+        raise NotImplementedError
+
+    @classmethod
+    def model_from_config(cls, obs_dim: int, action_dim: int, config: Any,
+                          device: str | torch.device = "cpu") -> Model:
+        """Build the method's model alone (no optimiser, no training component): what a snapshot
+        is loaded into for zero-shot, fine-tuning and ``dvfb.load``."""
+        raise NotImplementedError
+
+    def adopt(self, model: Model) -> None:
+        """Own ``model``: its networks become the learner's under their own names (the learner's
+        state keeps its flat keys), the model itself is not a sub-module (no key twice); its skill,
+        dimensions, device and network runner are the learner's."""
+        object.__setattr__(self, "model", model)
+        for name, module in model.named_children():
+            self.add_module(name, module)
+        self.skill, self.obs_dim, self.action_dim = model.skill, model.obs_dim, model.action_dim
+        self.device, self.net_runner = model.device, model.net_runner
+
+    @property
+    def skill_dim(self) -> int:
+        return self.skill.dim
+
+    def sample_skill(self, n: int = 1, generator: torch.Generator | None = None) -> torch.Tensor | None:
+        return self.model.sample_skill(n, generator)
+
+    def act(self, obs: np.ndarray, skills: torch.Tensor | None, explore: bool) -> np.ndarray:
+        return self.model.act(obs, skills, explore)
+
+    def nonfinite_hint(self, metric_names: list[str]) -> str:
+        return self.model.nonfinite_hint(metric_names)
+
+    def use_generator(self, generator: torch.Generator | None) -> None:
+        """Draw every random number of the learner and its model from ``generator``."""
+        for module in self.modules():
+            if hasattr(module, "generator"):
+                module.generator = generator
+        self.model.use_generator(generator)
+
+    # Learning ----------------------------------------------------------------------------------
+    def replay_needs(self) -> ReplayNeeds:
+        raise NotImplementedError
+
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
     # State -------------------------------------------------------------------------------------
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         raise NotImplementedError
 
     def pretrained_modules(self) -> dict[str, nn.Module]:
-        """What a snapshot keeps and zero-shot / fine-tuning load."""
+        """What a snapshot keeps (the model's modules, and what else the method's snapshots hold)."""
         raise NotImplementedError
 
     def training_state(self) -> dict:

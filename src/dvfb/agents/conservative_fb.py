@@ -17,8 +17,9 @@ without density corrections, at temperature 1, with the training z of the row. `
 by dual ascent on ``log alpha`` (starting at ``alpha = 1``) so that ``P`` settles at ``target``
 (50); with ``lagrange = false`` it is the constant ``alpha``.
 
-VC-FB and MC-FB are two registered methods (``vcfb``, ``mcfb``), two-line subclasses of this class
-(FB's agent with its ``conservative`` section) that fix the penalty.
+The penalty is a component of FB's learner (:class:`ConservativePenalty`); VC-FB and MC-FB are two
+registered methods (``vcfb``, ``mcfb``), two-line subclasses of :class:`ConservativeFBAgent` (FB's
+learner with its ``conservative`` section) that fix the penalty.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from dataclasses import dataclass
 
 import torch
 
-from dvfb.agents.fb import FB_SMALL, FBAgent, FBConfig, fb_finetune_label
+from dvfb.agents.fb import FB_SMALL, FBAgent, FBComponent, FBConfig, FBStep, fb_finetune_label
 from dvfb.config import param
 from dvfb.errors import ConfigError
 from dvfb.execution import PerfConfig
@@ -66,58 +67,48 @@ class ConservativeConfig:
         return uniform, rest // 3
 
 
-class ConservativeFBAgent(FBAgent):
-    """FB with the value- or measure-conservative penalty (see the module docstring); the two
-    registered methods are its subclasses, which fix ``penalty``."""
+class ConservativePenalty(FBComponent):
+    """The value- or measure-conservative penalty (see the module docstring) as a part of FB's
+    learner: the learner's ``log_alpha`` and ``alpha_optimizer``, the penalty ``P`` from the step's F
+    and B, and the FB objective ``fb_total + alpha * P`` with alpha stepped first."""
 
-    penalty: str = ""
-
-    @classmethod
-    def from_config(cls, obs_dim, action_dim, config, device="cpu") -> ConservativeFBAgent:
-        return cls(obs_dim, action_dim, config.fb, config.conservative, device, config.perf)
-
-    def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, conservative: ConservativeConfig,
-                 device: str | torch.device = "cpu", perf: PerfConfig | None = None):
-        if self.penalty not in PENALTIES:
-            raise ValueError(f"penalty must be one of {PENALTIES}, got {self.penalty!r}")
-        self.conservative = conservative
+    def __init__(self, penalty: str, conservative: ConservativeConfig):
+        if penalty not in PENALTIES:
+            raise ValueError(f"penalty must be one of {PENALTIES}, got {penalty!r}")
+        self.penalty, self.conservative = penalty, conservative
         self.num_uniform, self.num_each = conservative.counts()
-        super().__init__(obs_dim, action_dim, config, device, perf)
 
-    def _build_extra(self) -> None:
+    def build(self, learner: FBAgent) -> None:
         # log alpha = 0: alpha starts at 1 (the authors' initial Lagrange multiplier).
-        self.log_alpha = torch.nn.Parameter(torch.zeros(()))
+        learner.log_alpha = torch.nn.Parameter(torch.zeros(()))
 
-    def _build_extra_optimizers(self) -> None:
-        self.alpha_optimizer = adam([self.log_alpha], self.conservative.alpha_lr, fused=False)
+    def optimizers(self, learner: FBAgent) -> dict[str, torch.optim.Optimizer]:
+        return {"alpha_optimizer": adam([learner.log_alpha], self.conservative.alpha_lr, fused=False)}
 
-    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        return {**super().optimizers(), "alpha_optimizer": self.alpha_optimizer}
-
-    # The penalty -----------------------------------------------------------------------------------
     @torch.no_grad()
-    def penalty_actions(self, batch, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def penalty_actions(self, learner: FBAgent, batch, z: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The sampled (non-dataset) actions, their states and z's, ``(J' N, .)`` each, group by group:
         uniform at s, pi(s, z) at s, pi(s', z) at s' (training noise)."""
-        c = self.config
+        c = learner.config
         n = batch.obs.shape[-2]
-        uniform = rand((self.num_uniform * n, self.action_dim), self.generator, self.device) * 2 - 1
+        uniform = rand((self.num_uniform * n, learner.action_dim), learner.generator, learner.device) * 2 - 1
         z_each = repeat_rows(z, self.num_each)
         obs_each, next_each = repeat_rows(batch.obs, self.num_each), repeat_rows(batch.next_obs, self.num_each)
-        policy = training_action(self.actor(obs_each, z_each), c.stddev, c.stddev_clip, self.generator)
-        next_policy = training_action(self.actor(next_each, z_each), c.stddev, c.stddev_clip, self.generator)
+        policy = training_action(learner.actor(obs_each, z_each), c.stddev, c.stddev_clip, learner.generator)
+        next_policy = training_action(learner.actor(next_each, z_each), c.stddev, c.stddev_clip, learner.generator)
         states = torch.cat([repeat_rows(batch.obs, self.num_uniform), obs_each, next_each], dim=-2)
         actions = torch.cat([uniform, policy, next_policy], dim=-2)
         return states, actions, repeat_rows(z, self.num_uniform + 2 * self.num_each)
 
-    def conservative_penalty(self, batch, z: torch.Tensor, forward: torch.Tensor,
+    def conservative_penalty(self, learner: FBAgent, batch, z: torch.Tensor, forward: torch.Tensor,
                              backward: torch.Tensor) -> torch.Tensor:
         """``P`` of the module docstring; ``forward`` is F at the dataset actions, ``(2, N, d)``,
         ``backward`` the online B of the batch's s', ``(N, d)``."""
-        m = self.members
+        m = learner.members
         n = batch.obs.shape[-2]
-        states, actions, zs = self.penalty_actions(batch, z)
-        sampled = self.net_runner(self.forward_map, states, actions, zs)  # (2, J'N, d)
+        states, actions, zs = self.penalty_actions(learner, batch, z)
+        sampled = learner.net_runner(learner.forward_map, states, actions, zs)  # (2, J'N, d)
         sampled = sampled.view(*sampled.shape[:-2], -1, n, sampled.shape[-1])  # (2, J', N, d)
         # A group's (M, N, d) tensors get the head and J' axes of sampled's (M, 2, J', N, d).
         if self.penalty == "value":
@@ -133,25 +124,47 @@ class ConservativeFBAgent(FBAgent):
         logsumexp = torch.cat([sampled_values, copies], dim=j).logsumexp(dim=j)  # (2, N) or (2, N, N)
         return (logsumexp.flatten(j).mean(-1) - dataset_values.flatten(j).mean(-1)).sum(-1)
 
-    def alpha_step(self, penalty: torch.Tensor) -> torch.Tensor:
+    def alpha_step(self, learner: FBAgent, penalty: torch.Tensor) -> torch.Tensor:
         """One dual-ascent step on log alpha (alpha grows while P > target); the new alpha, detached."""
         c = self.conservative
         if not c.lagrange:
-            return torch.full(self.log_alpha.shape, c.alpha, device=self.device)  # a group: (M,)
-        alpha = self.log_alpha.exp().clamp(0, c.alpha_max)  # a group: (M,), each member's own
+            return torch.full(learner.log_alpha.shape, c.alpha, device=learner.device)  # a group: (M,)
+        alpha = learner.log_alpha.exp().clamp(0, c.alpha_max)  # a group: (M,), each member's own
         alpha_loss = -0.5 * alpha * (penalty.detach() - c.target)
-        minimise(self.alpha_optimizer, alpha_loss)
-        return self.log_alpha.detach().exp().clamp(0, c.alpha_max)
+        minimise(learner.alpha_optimizer, alpha_loss)
+        return learner.log_alpha.detach().exp().clamp(0, c.alpha_max)
 
-    def _fb_penalties(self, batch, z, forward, backward) -> dict[str, torch.Tensor]:
-        return {"conservative_penalty": self.conservative_penalty(batch, z, forward, backward)}
+    def representation_terms(self, learner: FBAgent, step: FBStep) -> dict[str, torch.Tensor]:
+        return {"conservative_penalty": self.conservative_penalty(learner, step.batch, step.z, step.forward,
+                                                                  step.backward)}
 
-    def _fb_objective(self, losses, metrics) -> torch.Tensor:
+    def representation_objective(self, learner: FBAgent, objective: torch.Tensor, losses: dict,
+                                 metrics: dict) -> torch.Tensor:
         penalty = losses["conservative_penalty"]
-        alpha = self.alpha_step(penalty)  # stepped first; the FB step uses the new alpha
-        total = losses["fb_total"] + alpha * penalty
+        alpha = self.alpha_step(learner, penalty)  # stepped first; the FB step uses the new alpha
+        total = objective + alpha * penalty
         metrics.update(conservative_alpha=alpha, fb_conservative_total=total.detach())
         return total
+
+
+class ConservativeFBAgent(FBAgent):
+    """FB's learner with a :class:`ConservativePenalty` (``penalty_term``); the two registered
+    methods are its subclasses, which fix ``penalty``."""
+
+    penalty: str = ""
+
+    def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, conservative: ConservativeConfig,
+                 device: str | torch.device = "cpu", perf: PerfConfig | None = None):
+        self.conservative = conservative
+        super().__init__(obs_dim, action_dim, config, device, perf, [ConservativePenalty(self.penalty, conservative)])
+
+    @classmethod
+    def from_config(cls, obs_dim, action_dim, config, device="cpu") -> ConservativeFBAgent:
+        return cls(obs_dim, action_dim, config.fb, config.conservative, device, config.perf)
+
+    @property
+    def penalty_term(self) -> ConservativePenalty:
+        return self.parts[0]
 
 
 class VCFBAgent(ConservativeFBAgent):

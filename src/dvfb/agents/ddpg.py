@@ -5,7 +5,8 @@
   ``[s, skill, a]`` with a shared LNT trunk and batched heads, its EMA target, and the update given
   a reward: critic on ``y = r + gamma^n min_k Q_k'(s_{t+n}, a')``, then actor on ``-min_k Q_k``,
   then the target EMA;
-* :class:`IntrinsicDDPGAgent` -- a method = the core trained on one
+* :class:`DDPGModel` -- a pre-trained method: the core and its reward module;
+* :class:`IntrinsicDDPGAgent` -- a method's learner = the core trained on one
   :class:`~dvfb.rewards.base.IntrinsicReward` module's reward; a baseline only builds its module;
 
 Their fine-tuner (URLB's) is the registered protocol ``urlb`` (:mod:`dvfb.protocols.urlb`).
@@ -18,12 +19,12 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from dvfb.agents.base import Agent, ReplayNeeds, no_skill_like
-from dvfb.execution import NetRunner, PerfConfig, requires_grad_disabled
+from dvfb.agents.base import Agent, Model, ReplayNeeds, TrainingSettings, no_skill_like
 from dvfb.config import param
+from dvfb.data import Batch
+from dvfb.execution import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.nets import Actor, TwinCritic, adam, call_network, make_target, soft_update_, training_action, twin_td_loss
 from dvfb.nets.members import member_mean, minimise
-from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward
 from dvfb.skills import NO_SKILL, SkillSpec
 
@@ -118,34 +119,71 @@ class DDPGCore(nn.Module):
                        reward=member_mean(reward, self.members))
 
 
+class DDPGModel(Model):
+    """A pre-trained URLB-style agent: the DDPG core (actor, critic, target critic) and its
+    intrinsic-reward module, which its snapshots keep (APS's task regression reads its features);
+    its skill, if it has one."""
+
+    learns_skill_value = False
+
+    def __init__(self, name: str, obs_dim: int, action_dim: int, skill: SkillSpec, core: DDPGCore,
+                 intrinsic: IntrinsicReward, ddpg: DDPGConfig, device: str | torch.device = "cpu",
+                 perf: PerfConfig | None = None):
+        super().__init__()
+        self.name = name
+        self.obs_dim, self.action_dim, self.skill = obs_dim, action_dim, skill
+        self.settings = TrainingSettings.of(ddpg)
+        self.core, self.intrinsic = core, intrinsic
+        self.device = torch.device(device)
+        self.to(self.device)
+        self.net_runner = NetRunner(perf, self.device)
+
+    @property
+    def actor(self) -> nn.Module:
+        return self.core.actor
+
+    def snapshot_modules(self) -> dict[str, nn.Module]:
+        # Everything (URLB pickles the whole agent); fine-tuning uses the actor and the critic.
+        return {"core": self.core, "intrinsic": self.intrinsic}
+
+
 class IntrinsicDDPGAgent(Agent):
-    """A URLB-style method: the DDPG core trained on one intrinsic-reward module.
+    """A URLB-style method's learner: the DDPG core trained on one intrinsic-reward module.
 
     Subclasses set ``name`` and ``reward_section`` (the run config's section of their reward
     module) and implement :meth:`build_reward`. The run config's ``ddpg`` section configures the
     core. A method with a skill declares it in :meth:`declare_skill` (from its own config section);
-    a variant of the core (another critic) sets ``core_cls``.
+    a variant of the core (another critic) sets ``core_cls``; a method whose model does more than
+    act (APS's task regression) sets ``model_cls``.
     """
 
     reward_section: str = ""
     core_cls: type = DDPGCore
+    model_cls: type = DDPGModel
 
     @classmethod
     def from_config(cls, obs_dim, action_dim, config, device="cpu") -> IntrinsicDDPGAgent:
         return cls(obs_dim, action_dim, config.ddpg, getattr(config, cls.reward_section), device, config.perf)
 
+    @classmethod
+    def model_from_config(cls, obs_dim, action_dim, config, device="cpu") -> DDPGModel:
+        return cls(obs_dim, action_dim, config.ddpg, getattr(config, cls.reward_section), device, config.perf,
+                   train=False).model
+
     def __init__(self, obs_dim: int, action_dim: int, ddpg: DDPGConfig, reward_config,
-                 device: str | torch.device = "cpu", perf: PerfConfig | None = None):
+                 device: str | torch.device = "cpu", perf: PerfConfig | None = None, train: bool = True):
         super().__init__()
-        self.obs_dim, self.action_dim, self.ddpg, self.reward_config = obs_dim, action_dim, ddpg, reward_config
+        self.ddpg, self.reward_config = ddpg, reward_config
+        # What declare_skill, build_core and build_reward read, before the model exists.
+        self.obs_dim, self.action_dim = obs_dim, action_dim
         self.skill = self.declare_skill()
-        self.core = self.build_core()
-        self.intrinsic = self.build_reward()
-        self.to(device)
-        self.device = torch.device(device)
+        core = self.build_core()
+        self.adopt(self.model_cls(self.name, obs_dim, action_dim, self.skill, core, self.build_reward(), ddpg,
+                                  device, perf))
+        if not train:
+            return
         self.core.make_optimizers()
         self.intrinsic.make_optimizer(getattr(reward_config, "lr", ddpg.lr), ddpg.fused_adam)
-        self.net_runner = NetRunner(perf, self.device)
         self.net_runner.compile([self.core.actor, self.core.critic, self.core.critic_target])
 
     def declare_skill(self) -> SkillSpec:
@@ -185,5 +223,4 @@ class IntrinsicDDPGAgent(Agent):
         return opts
 
     def pretrained_modules(self) -> dict[str, nn.Module]:
-        # Everything (URLB pickles the whole agent); fine-tuning uses the actor and the critic.
-        return {"core": self.core, "intrinsic": self.intrinsic}
+        return self.model.snapshot_modules()

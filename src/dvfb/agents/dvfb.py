@@ -2,7 +2,8 @@
 
 docs/methods.md §0, §7.2-§7.7, §7.11. The skill value Q_M = F . z keeps learning the successor
 measure; a separate z-conditioned twin critic Q_P learns from the intrinsic reward
-``r_rnd + beta * r_ce`` and the actor maximises ``Q_M + alpha * Q_P``. "DVFB w/o CE" is
+``r_rnd + beta * r_ce`` and the actor maximises ``Q_M + alpha * Q_P``. The learner is FB's with one
+component, :class:`ExplorationCritic`; the model is FB's. "DVFB w/o CE" is
 ``use_ce = false`` (no contrastive module at all, ``r = r_rnd``). ``exploration.reward`` swaps the
 whole intrinsic reward for one of the paper's Table 8 variants (docs/methods.md, "DVFB with other
 intrinsic rewards"): ICM-APT, Proto or CIC, the same :mod:`dvfb.rewards` modules the baselines use.
@@ -15,13 +16,12 @@ from dataclasses import dataclass
 
 import torch
 
-from dvfb.agents.fb import FB_SMALL, FBAgent, FBConfig, fb_finetune_label
-from dvfb.execution import PerfConfig
+from dvfb.agents.fb import FB_SMALL, FBAgent, FBComponent, FBConfig, FBStep, fb_finetune_label
 from dvfb.agents.registry import AgentSpec, config_field, register
 from dvfb.config import param
+from dvfb.data import Batch
 from dvfb.nets import TwinCritic, adam, make_target, twin_td_loss
 from dvfb.nets.members import member_mean, minimise, per_member
-from dvfb.data import Batch
 from dvfb.rewards.contrastive import CE_AGGREGATES, CE_NEIGHBOURS, CICConfig, CICReward, ContrastiveEntropyReward
 from dvfb.rewards.icm import ICMAPTConfig, ICMAPTReward
 from dvfb.rewards.proto import ProtoConfig, ProtoReward
@@ -57,44 +57,44 @@ class ExplorationConfig:
     nce_exact_positive: bool = param(False, "Subtract the exact positive term in the NCE denominator.")
 
 
-class DVFBAgent(FBAgent):
-    """FB + exploration critic Q_P (docs/methods.md §7)."""
+class ExplorationCritic(FBComponent):
+    """DVFB's part of the learner (docs/methods.md §7.2-§7.7, §7.11): the exploration critic Q_P,
+    its target, and the intrinsic-reward modules it learns from (RND + contrastive entropy, or a
+    Table 8 variant); the actor's bonus ``alpha * Q_P``. Its networks are the learner's
+    ``exploration_critic``, ``exploration_critic_target``, ``rnd``, ``contrastive`` and
+    ``variant_reward`` (those the reward has)."""
 
-    name = "dvfb"
-
-    def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, exploration: ExplorationConfig,
-                 device: str | torch.device = "cpu", perf: PerfConfig | None = None,
-                 icm_apt: ICMAPTConfig | None = None, proto: ProtoConfig | None = None, cic: CICConfig | None = None):
+    def __init__(self, exploration: ExplorationConfig, icm_apt: ICMAPTConfig | None = None,
+                 proto: ProtoConfig | None = None, cic: CICConfig | None = None):
         self.exploration = exploration
         self.variant_configs = {"icm_apt": icm_apt or ICMAPTConfig(), "proto": proto or ProtoConfig(),
                                 "cic": cic or CICConfig()}
-        super().__init__(obs_dim, action_dim, config, device, perf)
-
-    @classmethod
-    def from_config(cls, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> DVFBAgent:
-        return cls(obs_dim, action_dim, config.fb, config.exploration, device, config.perf,
-                   config.icm_apt, config.proto, config.cic)
-
-    def _build_extra(self) -> None:
-        c, e = self.config, self.exploration
-        self.exploration_critic = TwinCritic(self.obs_dim, self.action_dim, c.z_dim, c.hidden_dim)
-        self.exploration_critic_target = make_target(self.exploration_critic)
         self.rnd = self.contrastive = self.variant_reward = None
+
+    def build(self, learner: FBAgent) -> None:
+        c, e = learner.config, self.exploration
+        obs_dim, action_dim = learner.obs_dim, learner.action_dim
+        self.critic = TwinCritic(obs_dim, action_dim, c.z_dim, c.hidden_dim)
+        self.critic_target = make_target(self.critic)
         if e.reward == "rnd_ce":
-            self.rnd = RNDReward(self.obs_dim, c.hidden_dim, e.rnd_rep_dim, e.rnd_obs_clip, e.rnd_input)
+            self.rnd = RNDReward(obs_dim, c.hidden_dim, e.rnd_rep_dim, e.rnd_obs_clip, e.rnd_input)
             # The skill labels are B's outputs, so the encoders' skill dimension is z_dim (§4.6).
             self.contrastive = (ContrastiveEntropyReward(
-                self.obs_dim, c.z_dim, e.contrastive_hidden_dim, e.ce_k, e.ce_neighbours, e.ce_aggregate,
+                obs_dim, c.z_dim, e.contrastive_hidden_dim, e.ce_k, e.ce_neighbours, e.ce_aggregate,
                 e.ce_temperature, e.nce_temperature, e.nce_exact_positive) if e.use_ce else None)
         elif e.reward == "icm_apt":
-            self.variant_reward = ICMAPTReward(self.obs_dim, self.action_dim, self.variant_configs["icm_apt"])
+            self.variant_reward = ICMAPTReward(obs_dim, action_dim, self.variant_configs["icm_apt"])
         elif e.reward == "proto":
-            self.variant_reward = ProtoReward(self.obs_dim, self.action_dim, self.variant_configs["proto"])
+            self.variant_reward = ProtoReward(obs_dim, action_dim, self.variant_configs["proto"])
         else:  # cic: its NCE pairs each transition with B's label, as DVFB's own CE module does
-            self.variant_reward = CICReward(self.obs_dim, c.z_dim, self.variant_configs["cic"])
+            self.variant_reward = CICReward(obs_dim, c.z_dim, self.variant_configs["cic"])
         for module in (self.contrastive, self.variant_reward):
             if module is not None:
                 module.skill_column = LABEL_COLUMN  # the modules that pair rows with a skill read B's
+        learner.add_module("exploration_critic", self.critic)
+        learner.add_module("exploration_critic_target", self.critic_target)
+        for name in ("rnd", "contrastive", "variant_reward"):  # None where the reward has no such module
+            learner.add_module(name, getattr(self, name))
 
     def _reward_modules(self) -> dict[str, torch.nn.Module]:
         """The intrinsic-reward modules, under the names of their optimisers."""
@@ -102,18 +102,20 @@ class DVFBAgent(FBAgent):
                    "exploration_reward_optimizer": self.variant_reward}
         return {k: m for k, m in modules.items() if m is not None}
 
-    def _build_extra_optimizers(self) -> None:
-        c = self.config
-        self.critic_optimizer = adam(self.exploration_critic.parameters(), c.lr, c.fused_adam)
+    def optimizers(self, learner: FBAgent) -> dict[str, torch.optim.Optimizer]:
+        c = learner.config
+        optimizers = {"critic_optimizer": adam(self.critic.parameters(), c.lr, c.fused_adam)}
         for name, module in self._reward_modules().items():
             lr = c.lr if name != "exploration_reward_optimizer" else self.variant_configs[self.exploration.reward].lr
             module.make_optimizer(lr, c.fused_adam)
+            optimizers[name] = module.optimizer
+        return optimizers
 
     def target_pairs(self):
-        return super().target_pairs() + [(self.exploration_critic_target, self.exploration_critic)]
+        return [(self.critic_target, self.critic)]
 
     def update_networks(self):
-        nets = super().update_networks() + [self.exploration_critic, self.exploration_critic_target]
+        nets = [self.critic, self.critic_target]
         if self.rnd is not None:
             nets += [self.rnd.networks.predictor, self.rnd.networks.target]
         if self.contrastive is not None:
@@ -121,26 +123,11 @@ class DVFBAgent(FBAgent):
             nets += [enc.state_net, enc.transition_net, enc.skill_net]
         return nets
 
-    def _actor_loss_frozen(self):
-        return super()._actor_loss_frozen() + [self.exploration_critic]
-
-    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        opts = super().optimizers()
-        opts["critic_optimizer"] = self.critic_optimizer
-        opts.update({k: m.optimizer for k, m in self._reward_modules().items()})
-        return opts
-
-    def load_training_state(self, state: dict) -> None:
-        # Checkpoints written before the reward modules moved to dvfb.rewards kept the contrastive
-        # encoders directly under "contrastive."; they now sit under "contrastive.encoders.".
-        modules = state["modules"]
-        if any(k.startswith("contrastive.state_net.") for k in modules):
-            state = {**state, "modules": {k.replace("contrastive.", "contrastive.encoders.", 1)
-                                          if k.startswith("contrastive.") else k: v for k, v in modules.items()}}
-        super().load_training_state(state)
+    def actor_frozen(self):
+        return [self.critic]
 
     # Intrinsic reward ----------------------------------------------------------------------------
-    def intrinsic_reward(self, batch: Batch, labels: torch.Tensor, metrics: dict) -> torch.Tensor:
+    def intrinsic_reward(self, learner: FBAgent, batch: Batch, labels: torch.Tensor, metrics: dict) -> torch.Tensor:
         """Train the reward modules on the batch, then score it with the updated modules (§7.2 steps 3-6).
 
         The CE and CIC encoders pair each transition with B's (detached) label of it (§4.6): the
@@ -148,7 +135,7 @@ class DVFBAgent(FBAgent):
         ``skill_column``); ``batch.z`` stays the stored rollout skill.
         """
         e = self.exploration
-        run = self.net_runner
+        run = learner.net_runner
         labelled = dataclasses.replace(batch, columns={**batch.columns, LABEL_COLUMN: labels})
         if self.variant_reward is not None:
             reward = self.variant_reward.update_and_score(labelled, metrics, run)
@@ -159,31 +146,31 @@ class DVFBAgent(FBAgent):
                 if e.beta != 0:
                     with torch.no_grad():  # the just-updated encoders (§7.2 step 6)
                         ce = self.contrastive.score(labelled, run)
-                    metrics["ce_reward"] = member_mean(ce, self.members)
+                    metrics["ce_reward"] = member_mean(ce, learner.members)
                     reward = reward + e.beta * ce
-        metrics["intrinsic_reward"] = member_mean(reward, self.members)
+        metrics["intrinsic_reward"] = member_mean(reward, learner.members)
         return reward
 
-    def exploration_critic_loss(self, batch: Batch, z: torch.Tensor, next_action: torch.Tensor,
-                                reward: torch.Tensor) -> torch.Tensor:
+    def critic_loss(self, learner: FBAgent, batch: Batch, z: torch.Tensor, next_action: torch.Tensor,
+                    reward: torch.Tensor) -> torch.Tensor:
         """Twin TD loss of Q_P on the intrinsic reward (§7.7)."""
-        run = self.net_runner
+        run = learner.net_runner
         with torch.no_grad():
-            next_q = run(self.exploration_critic_target, batch.next_obs, z, next_action).amin(-3)  # (N, 1)
+            next_q = run(self.critic_target, batch.next_obs, z, next_action).amin(-3)  # (N, 1)
             target = reward + batch.discount * next_q
-        q = run(self.exploration_critic, batch.obs, z, batch.action)  # (2, N, 1)
+        q = run(self.critic, batch.obs, z, batch.action)  # (2, N, 1)
         return twin_td_loss(q, target)
 
-    def _explore(self, batch, z, next_action, labels, metrics) -> None:
-        reward = self.intrinsic_reward(batch, labels, metrics)
-        loss = self.exploration_critic_loss(batch, z, next_action, reward)
-        minimise(self.critic_optimizer, loss)
+    def before_representation(self, learner: FBAgent, step: FBStep, metrics: dict) -> None:
+        reward = self.intrinsic_reward(learner, step.batch, step.labels, metrics)
+        loss = self.critic_loss(learner, step.batch, step.z, step.next_action, reward)
+        minimise(learner.critic_optimizer, loss)
         metrics["exploration_critic_loss"] = loss.detach()
 
-    def _actor_bonus(self, obs, z, action, skill_value, metrics):
+    def actor_bonus(self, learner: FBAgent, obs, z, action, skill_value, metrics):
         e = self.exploration
-        exploration_value = self.net_runner(self.exploration_critic, obs, z, action).amin(-3).squeeze(-1)
-        m = self.members
+        exploration_value = learner.net_runner(self.critic, obs, z, action).amin(-3).squeeze(-1)
+        m = learner.members
         if e.alpha_mode == "adaptive":  # one alpha per member, from its own means
             alpha = per_member((2 * member_mean(skill_value, m) / member_mean(exploration_value, m)).detach(),
                                exploration_value)
@@ -191,6 +178,28 @@ class DVFBAgent(FBAgent):
             alpha = e.alpha
         metrics["exploration_value"] = member_mean(exploration_value.detach(), m)
         return alpha * exploration_value
+
+
+class DVFBAgent(FBAgent):
+    """FB + the exploration critic Q_P (docs/methods.md §7): FB's learner with an
+    :class:`ExplorationCritic` (``explorer``), configured by ``exploration``."""
+
+    name = "dvfb"
+
+    def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, exploration: ExplorationConfig,
+                 device: str | torch.device = "cpu", perf=None, icm_apt: ICMAPTConfig | None = None,
+                 proto: ProtoConfig | None = None, cic: CICConfig | None = None):
+        self.exploration = exploration
+        super().__init__(obs_dim, action_dim, config, device, perf, [ExplorationCritic(exploration, icm_apt, proto, cic)])
+
+    @classmethod
+    def from_config(cls, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> DVFBAgent:
+        return cls(obs_dim, action_dim, config.fb, config.exploration, device, config.perf,
+                   config.icm_apt, config.proto, config.cic)
+
+    @property
+    def explorer(self) -> ExplorationCritic:
+        return self.parts[0]
 
 
 def dvfb_label(run, finetune) -> str:

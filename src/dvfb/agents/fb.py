@@ -1,9 +1,13 @@
-"""Online forward-backward (FB) agent: networks, losses and the pre-training update.
+"""The forward-backward (FB) family: :class:`FBModel` (the pre-trained agent: actor, F, B and their
+inference) and :class:`FBAgent` (the learner of online and offline FB, and of its variants by
+composition).
 
 Implements docs/methods.md §4.1-§4.3, §5 (task vectors), §7.8-§7.11 (FB loss, auxiliary implicit-
-reward Q loss, orthonormality, actor) and §8.2 (z inference). DVFB (:mod:`dvfb.agents.dvfb`) is this
-agent plus an exploration critic; the update is written with one hook, :meth:`FBAgent._explore`,
-and one extra actor term, :meth:`FBAgent._actor_bonus`, that DVFB overrides.
+reward Q loss, orthonormality, actor) and §8.2 (z inference). A variant is a small subclass that
+chooses its model and the :class:`FBComponent` s its learner composes: DVFB
+(:mod:`dvfb.agents.dvfb`) adds an exploration critic and its intrinsic reward, VC-FB and MC-FB
+(:mod:`dvfb.agents.conservative_fb`) a conservative penalty; the successor features
+(:mod:`dvfb.agents.sf`) replace the model's B by learned features and the representation loss.
 
 Performance notes (issue "Performance"): each forward pass is computed once per update and reused
 -- the online B of the batch feeds the FB loss, the auxiliary Q loss, the orthonormality loss and
@@ -14,25 +18,27 @@ gradient of a full update against a plain reference implementation). The target 
 call over all target parameters, and the actor loss is built with F (and Q_P) excluded from autograd,
 so its graph holds only the path from the action to the actor. How the networks execute
 (precision, torch.compile) is :mod:`dvfb.execution`'s business: every network call of the update
-goes through :attr:`FBAgent.net_runner`.
+goes through the model's :attr:`~dvfb.agents.base.Model.net_runner`.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import nn
 
-from dvfb.agents.base import Agent, ReplayNeeds
-from dvfb.execution import NetRunner, PerfConfig, requires_grad_disabled
+from dvfb.agents.base import Agent, Model, ReplayNeeds, TrainingSettings
 from dvfb.config import param
+from dvfb.data import Batch
+from dvfb.execution import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.nets import (
-    adam,
     Actor,
     BackwardMap,
     ForwardMap,
+    adam,
+    implicit_reward,
     make_target,
     offdiag_mean,
     orthonormality_loss,
@@ -41,8 +47,7 @@ from dvfb.nets import (
     skill_values,
     training_action,
 )
-from dvfb.nets.members import member_mean, minimise, rand, row_products, with_head_axis, randperm, take_rows
-from dvfb.data import Batch
+from dvfb.nets.members import member_mean, minimise, rand, randperm, row_products, take_rows, with_head_axis
 from dvfb.skills import SkillSpec
 
 log = logging.getLogger(__name__)
@@ -80,30 +85,6 @@ class FBConfig:
                              "the multi-tensor (foreach) implementation. Same math either way.")
 
 
-def implicit_reward(backward: torch.Tensor, z: torch.Tensor, ridge: float = 0.0) -> torch.Tensor:
-    """``r_i = B_i Cov^{-1} z_i`` with ``Cov = B^T B / N`` (§7.9, §9.4), by a linear solve.
-
-    ``z`` is ``(N, d)`` (one z per row) or ``(d,)`` (one z for all rows). Returns ``(N,)``. A group's
-    ``backward`` is ``(M, N, d)``, with ``z`` ``(M, N, d)`` or ``(M, d)``, and the result ``(M, N)``.
-    """
-    n, d = backward.shape[-2:]
-    cov = backward.mT @ backward / n
-    if ridge:
-        cov = cov + ridge * torch.eye(d, device=backward.device, dtype=backward.dtype)
-    per_row = z.dim() == backward.dim()
-    rhs = z.mT if per_row else z.unsqueeze(-1)
-    # solve_ex: no host sync on failure. An exactly singular Cov(B) gives non-finite rewards, which
-    # stop the run with an error naming the step and --fb.cov-ridge when the metrics are read (D19).
-    solution, _info = torch.linalg.solve_ex(cov, rhs)
-    if per_row:
-        return (backward * solution.mT).sum(-1)
-    if backward.dim() == 2:
-        return backward @ solution.squeeze(-1)
-    # A group's one z per member: each member's own matrix-vector product, which rounds as its
-    # separate run's does (a batched product does not).
-    return torch.stack([member @ x.squeeze(-1) for member, x in zip(backward, solution)])
-
-
 def infer_z_from_rewards(features: torch.Tensor, rewards: torch.Tensor,
                          quantile: float | None) -> tuple[torch.Tensor, dict]:
     """z_r = proj(mean over kept samples of r_i B_i) with the optional top-quantile filter (§8.2).
@@ -130,78 +111,226 @@ def infer_z_from_rewards(features: torch.Tensor, rewards: torch.Tensor,
     return project_to_sphere(z_raw), info
 
 
-class FBAgent(Agent):
-    """Online FB: reward-free pre-training of F, B and pi(s, z) (docs/methods.md §7 with alpha = 0)."""
+class FBModel(Model):
+    """A pre-trained FB agent: the actor ``pi(s, z)``, the forward map F and the backward map B, and
+    their inference: ``z_r`` from reward-labelled samples (§8.2), ``z`` of a goal, the skill value
+    ``Q_M = min_k F_k . z``, and B's features of transitions (reward mapping, §9.4)."""
 
     name = "fb"
+    learns_skill_value = True
 
-    @classmethod
-    def from_config(cls, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> FBAgent:
-        return cls(obs_dim, action_dim, config.fb, device, config.perf)
+    # The representation's targets: (online module's name, its target's name), what a learner EMAs.
+    TARGETS = (("forward_map", "forward_target"), ("backward_map", "backward_target"))
 
-    def __init__(self, obs_dim: int, action_dim: int, config: FBConfig, device: str | torch.device = "cpu",
+    def __init__(self, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu",
                  perf: PerfConfig | None = None):
         super().__init__()
         self.obs_dim, self.action_dim, self.config = obs_dim, action_dim, config
         c = config
+        self.skill = SkillSpec("sphere", c.z_dim, every=c.skill_every)
+        self.settings = TrainingSettings.of(c)
+        self.actor = Actor(obs_dim, c.z_dim, action_dim, c.hidden_dim, c.feature_dim, c.actor_arch)
+        self.build_representation(config)  # after the actor: the networks initialise in this order
+        self.device = torch.device(device)
+        self.to(self.device)
+        self.net_runner = NetRunner(perf, self.device)
+
+    def build_representation(self, config: FBConfig) -> None:
+        """The networks beside the actor: F and B (the successor features: psi and phi)."""
+        c = config
         if c.backward_input not in BACKWARD_INPUTS:
             raise ValueError(f"backward_input must be one of {BACKWARD_INPUTS}, got {c.backward_input!r}")
-        backward_in = obs_dim if c.backward_input == "state" else 2 * obs_dim
-        self.skill = SkillSpec("sphere", c.z_dim, every=c.skill_every)
-        self.actor = Actor(obs_dim, c.z_dim, action_dim, c.hidden_dim, c.feature_dim, c.actor_arch)
-        self.forward_map = ForwardMap(obs_dim, action_dim, c.z_dim, c.hidden_dim, c.feature_dim)
+        backward_in = self.obs_dim if c.backward_input == "state" else 2 * self.obs_dim
+        self.forward_map = ForwardMap(self.obs_dim, self.action_dim, c.z_dim, c.hidden_dim, c.feature_dim)
         self.backward_map = BackwardMap(backward_in, c.backward_hidden_dim, c.z_dim)
-        self.forward_target = make_target(self.forward_map)
-        self.backward_target = make_target(self.backward_map)
-        self._build_extra()
-        self.to(device)
-        self.device = torch.device(device)
-        self.fb_optimizer = adam(
-            [{"params": self.forward_map.parameters()},
-             {"params": self.backward_map.parameters(), "lr": c.lr * c.backward_lr_coef}],
-            lr=c.lr, fused=c.fused_adam)
-        self.actor_optimizer = adam(self.actor.parameters(), c.lr, c.fused_adam)
-        self._build_extra_optimizers()
+
+    def snapshot_modules(self) -> dict[str, nn.Module]:
+        return {"actor": self.actor, "forward_map": self.forward_map, "backward_map": self.backward_map}
+
+    # Backward-map inputs (D1) -----------------------------------------------------------------
+    def label_input(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """B's input for skill labels, z inference and reward mapping: s' or (s, s') (D1 c)."""
+        if self.config.backward_input == "state":
+            return next_obs
+        return torch.cat([obs, next_obs], dim=-1)
+
+    @torch.no_grad()
+    def backward_features(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """Online B of transitions, as used for inference and reward mapping (§8.2, §9.4)."""
+        return self.backward_map(self.label_input(obs, next_obs))
+
+    # Zero-shot inference ------------------------------------------------------------------------
+    @torch.no_grad()
+    def infer_skill(self, obs: torch.Tensor, next_obs: torch.Tensor, reward: torch.Tensor,
+                    inference) -> tuple[torch.Tensor, dict]:
+        """z_r from reward-labelled transitions (§8.2) with the protocol's reward quantile; a prior
+        draw if the rewards give no direction."""
+        features = self.backward_features(obs, next_obs)
+        z, info = infer_z_from_rewards(features, reward, inference.reward_quantile)
+        if info["fallback"] == "zero":
+            log.warning("inferred z is zero (all rewards 0?): falling back to a random z ~ p(z)")
+            z = self.sample_skill(1)[0]
+            info["fallback"] = "prior"
+        return z, info
+
+    @torch.no_grad()
+    def skill_from_goal(self, goal_obs: torch.Tensor) -> torch.Tensor:
+        """z = proj(B(goal)) for a goal state (state mode) or goal transition (pair modes)."""
+        goal = goal_obs.reshape(1, -1).to(self.device, torch.float32)
+        if self.config.backward_input != "state" and goal.shape[-1] == self.obs_dim:
+            goal = torch.cat([goal, goal], dim=-1)  # a goal "transition" that stays at the goal
+        return project_to_sphere(self.backward_map(goal))[0]
+
+    def goal_widths(self) -> tuple[int, ...]:
+        # B's pair inputs also take a goal transition (s, s').
+        return (self.obs_dim,) if self.config.backward_input == "state" else (self.obs_dim, 2 * self.obs_dim)
+
+    @torch.no_grad()
+    def skill_value(self, obs: torch.Tensor, action: torch.Tensor, z: torch.Tensor,
+                    task: torch.Tensor | None = None) -> torch.Tensor:
+        """``min_k F_k(s, a, z) . z_task`` (``Q_M`` when the task is z itself) for evaluation and analysis."""
+        zz = z.expand(obs.shape[0], -1) if z.dim() == 1 else z
+        tt = zz if task is None else (task.expand(obs.shape[0], -1) if task.dim() == 1 else task)
+        return skill_values(self.forward_map(obs, action, zz), tt).amin(0)
+
+    def nonfinite_hint(self, metric_names: list[str]) -> str:
+        if any("implicit_reward" in k for k in metric_names):
+            return ("the implicit reward B Cov(B)^-1 z is not finite: Cov(B) is singular or ill-conditioned, add "
+                    "a ridge with --fb.cov-ridge 1e-6 (or larger)")
+        return ""
+
+
+@dataclass
+class FBStep:
+    """What one update has computed so far, handed to the components: the batch, the training z's,
+    the target policy's next actions, the online B of the batch (with its graph), the target B's
+    input, B's detached labels of the transitions, and F at the batch's actions once the
+    representation loss has it (with its graph)."""
+
+    batch: Batch
+    z: torch.Tensor
+    next_action: torch.Tensor
+    backward: torch.Tensor | None = None
+    target_input: torch.Tensor | None = None
+    labels: torch.Tensor | None = None
+    forward: torch.Tensor | None = None
+    extra: dict = field(default_factory=dict)
+
+
+class FBComponent:
+    """A part of an FB-family learner that a variant composes (DVFB's exploration critic, the
+    conservative penalties of VC-FB and MC-FB). Every hook is optional.
+
+    :meth:`build` makes its networks after the model's and the targets (so that initialisation draws
+    in that order) and registers them on the learner under their names (the learner's state stays
+    flat); :meth:`optimizers` makes its optimisers after the learner's. In an update:
+    :meth:`before_representation` runs after the training z's and B's labels are drawn (DVFB trains
+    its reward modules and Q_P there); :meth:`representation_terms` adds losses computed from the
+    step's F and B; :meth:`representation_objective` weighs them into what the representation's
+    optimiser minimises; :meth:`actor_bonus` adds a per-sample term to the actor's objective.
+    """
+
+    def build(self, learner: FBAgent) -> None:
+        pass
+
+    def optimizers(self, learner: FBAgent) -> dict[str, torch.optim.Optimizer]:
+        return {}
+
+    def target_pairs(self) -> list[tuple[nn.Module, nn.Module]]:
+        return []
+
+    def update_networks(self) -> list[nn.Module]:
+        return []
+
+    def actor_frozen(self) -> list[nn.Module]:
+        """Networks the actor loss differentiates through, but only with respect to the action."""
+        return []
+
+    def before_representation(self, learner: FBAgent, step: FBStep, metrics: dict) -> None:
+        pass
+
+    def representation_terms(self, learner: FBAgent, step: FBStep) -> dict[str, torch.Tensor]:
+        return {}
+
+    def representation_objective(self, learner: FBAgent, objective: torch.Tensor, losses: dict,
+                                 metrics: dict) -> torch.Tensor:
+        return objective
+
+    def actor_bonus(self, learner: FBAgent, obs: torch.Tensor, z: torch.Tensor, action: torch.Tensor,
+                    skill_value: torch.Tensor, metrics: dict) -> torch.Tensor | None:
+        return None
+
+
+class FBAgent(Agent):
+    """Online (or offline) FB: reward-free pre-training of F, B and pi(s, z) (docs/methods.md §7
+    with alpha = 0), and of every variant that composes :class:`FBComponent` s."""
+
+    name = "fb"
+    model_cls: type[FBModel] = FBModel
+
+    @classmethod
+    def config_section(cls, config):
+        """The run config's section of the family's hyper-parameters."""
+        return config.fb
+
+    @classmethod
+    def components(cls, config) -> list[FBComponent]:
+        """The components the method composes, from its run config (FB: none)."""
+        return []
+
+    @classmethod
+    def from_config(cls, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> FBAgent:
+        return cls(obs_dim, action_dim, cls.config_section(config), device, config.perf, cls.components(config))
+
+    @classmethod
+    def model_from_config(cls, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> FBModel:
+        return cls.model_cls(obs_dim, action_dim, cls.config_section(config), device, config.perf)
+
+    def __init__(self, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu",
+                 perf: PerfConfig | None = None, components: list[FBComponent] = ()):
+        super().__init__()
+        self.config = config
+        self.adopt(self.model_cls(obs_dim, action_dim, config, device, perf))
+        model = self.model
+        for online, target in model.TARGETS:
+            self.add_module(target, make_target(getattr(model, online)))
+        self.parts = list(components)
+        for part in self.parts:
+            part.build(self)
+        self.to(model.device)
+        optimizers = self.make_optimizers()
+        optimizers["actor_optimizer"] = adam(self.actor.parameters(), config.lr, config.fused_adam)
+        for part in self.parts:
+            optimizers.update(part.optimizers(self))
+        self.optimizer_names = list(optimizers)
+        for name, optimizer in optimizers.items():
+            setattr(self, name, optimizer)
         # All (target, online) parameter pairs, EMA-updated by one fused call per update (§3.5).
         pairs = [(t, o) for tm, om in self.target_pairs() for t, o in zip(tm.parameters(), om.parameters())]
         self._ema_target_params = [t for t, _ in pairs]
         self._ema_online_params = [o for _, o in pairs]
-        self._actor_frozen_params = [p for m in self._actor_loss_frozen() for p in m.parameters()]
-        self.net_runner = NetRunner(perf, self.device)
+        frozen = [self.forward_map] + [m for part in self.parts for m in part.actor_frozen()]
+        self._actor_frozen_params = [p for m in frozen for p in m.parameters()]
         self.net_runner.compile(self.update_networks())
 
-    # Hooks for subclasses -------------------------------------------------------------------
-    def _build_extra(self) -> None:
-        """Create additional networks (DVFB: exploration critic, RND, encoders)."""
-
-    def _build_extra_optimizers(self) -> None:
-        """Create optimisers of the additional networks."""
-
-    def _explore(self, batch: Batch, z: torch.Tensor, next_action: torch.Tensor,
-                 labels: torch.Tensor, metrics: dict) -> None:
-        """Exploration updates before the FB step (DVFB: RND, encoders, Q_P). FB: nothing."""
-
-    def _actor_bonus(self, obs: torch.Tensor, z: torch.Tensor, action: torch.Tensor,
-                     skill_value: torch.Tensor, metrics: dict) -> torch.Tensor | None:
-        """Extra per-sample actor objective (DVFB: alpha * Q_P). FB: none."""
-        return None
+    def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        """The representation's optimiser (FB: one for F and B, B at ``backward_lr_coef`` times lr)."""
+        c = self.config
+        return {"fb_optimizer": adam([{"params": self.forward_map.parameters()},
+                                      {"params": self.backward_map.parameters(), "lr": c.lr * c.backward_lr_coef}],
+                                     lr=c.lr, fused=c.fused_adam)}
 
     def target_pairs(self) -> list[tuple[nn.Module, nn.Module]]:
         """(target, online) networks that follow their online network by EMA after every update."""
-        return [(self.forward_target, self.forward_map), (self.backward_target, self.backward_map)]
+        own = [(getattr(self, target), getattr(self, online)) for online, target in self.model.TARGETS]
+        return own + [pair for part in self.parts for pair in part.target_pairs()]
 
     def update_networks(self) -> list[nn.Module]:
         """Every network the update calls (what ``perf.compile`` compiles)."""
-        return [self.actor, self.forward_map, self.backward_map, self.forward_target, self.backward_target]
+        own = [self.actor, self.forward_map, self.backward_map, self.forward_target, self.backward_target]
+        return own + [m for part in self.parts for m in part.update_networks()]
 
-    def _actor_loss_frozen(self) -> list[nn.Module]:
-        """Networks the actor loss differentiates through, but only with respect to the action."""
-        return [self.forward_map]
-
-    # Skills, replay and acting (the Agent interface) -------------------------------------------
-    def sample_z(self, n: int = 1, generator: torch.Generator | None = None) -> torch.Tensor:
-        return sample_z_prior(n, self.config.z_dim, self.device, generator if generator is not None else self.generator)
-
+    # Skills, replay and acting ---------------------------------------------------------------------
     @property
     def policy_stddev(self) -> float:
         return self.config.stddev
@@ -225,17 +354,6 @@ class FBAgent(Agent):
         return (torch.cat([batch.obs, batch.future_obs], dim=-1),
                 torch.cat([batch.next_obs, batch.future_obs], dim=-1))
 
-    def label_input(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-        """B's input for skill labels, z inference and reward mapping: s' or (s, s') (D1 c)."""
-        if self.config.backward_input == "state":
-            return next_obs
-        return torch.cat([obs, next_obs], dim=-1)
-
-    @torch.no_grad()
-    def backward_features(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-        """Online B of transitions, as used for inference and reward mapping (§8.2, §9.4)."""
-        return self.backward_map(self.label_input(obs, next_obs))
-
     @torch.no_grad()
     def training_z(self, batch: Batch) -> torch.Tensor:
         """Prior z's with a ``mix_ratio`` share replaced by projected B of replay data (§5.3)."""
@@ -256,11 +374,11 @@ class FBAgent(Agent):
         return torch.where(replace, goals, z)
 
     # The update ---------------------------------------------------------------------------------
-    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
-        """One full pre-training update in the order of §7.2. Returns detached metric tensors."""
+    def prepare(self, batch: Batch) -> FBStep:
+        """The update's first part (§7.2): the training z's, the target policy's next actions, the
+        online B of the batch and B's detached labels."""
         c = self.config
         run = self.net_runner
-        metrics: dict[str, torch.Tensor] = {}
         z = self.training_z(batch)
         with torch.no_grad():
             next_action = training_action(run(self.actor, batch.next_obs, z), c.stddev, c.stddev_clip, self.generator)
@@ -268,22 +386,49 @@ class FBAgent(Agent):
         backward = run(self.backward_map, online_input)  # reused by the FB, Q and ortho losses
         if c.backward_input == "code_exact":
             with torch.no_grad():
-                labels = run(self.backward_map, self.label_input(batch.obs, batch.next_obs))
+                labels = run(self.backward_map, self.model.label_input(batch.obs, batch.next_obs))
         else:
             labels = backward.detach()
-        self._explore(batch, z, next_action, labels, metrics)
-        self._fb_step(batch, z, next_action, backward, target_input, metrics)
-        self._actor_step(batch.obs, z, metrics)
+        return FBStep(batch, z, next_action, backward, target_input, labels)
+
+    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """One full pre-training update in the order of §7.2. Returns detached metric tensors."""
+        metrics: dict[str, torch.Tensor] = {}
+        step = self.prepare(batch)
+        for part in self.parts:
+            part.before_representation(self, step, metrics)
+        self.representation_step(step, metrics)
+        self._actor_step(batch.obs, step.z, metrics)
         self.soft_update_targets()
         return metrics
+
+    def representation_step(self, step: FBStep, metrics: dict) -> None:
+        """One step of the representation's optimiser on its losses and the components' terms."""
+        losses = self.representation_losses(step)
+        for part in self.parts:
+            losses.update(part.representation_terms(self, step))
+        objective = losses[self.objective_key]
+        for part in self.parts:
+            objective = part.representation_objective(self, objective, losses, metrics)
+        minimise(getattr(self, self.representation_optimizer), objective)
+        metrics.update({k: v.detach() for k, v in losses.items()})
+
+    # What the representation step minimises: the loss of that name, with the representation's optimiser.
+    objective_key = "fb_total"
+    representation_optimizer = "fb_optimizer"
 
     @torch.no_grad()
     def soft_update_targets(self) -> None:
         """EMA of every target network (§3.5), one fused call over all their parameters."""
         torch._foreach_lerp_(self._ema_target_params, self._ema_online_params, self.config.tau)
 
-    def fb_losses(self, batch: Batch, z: torch.Tensor, next_action: torch.Tensor,
-                  backward: torch.Tensor, target_input: torch.Tensor) -> dict[str, torch.Tensor]:
+    def representation_losses(self, step: FBStep) -> dict[str, torch.Tensor]:
+        """The representation's losses: FB's (:meth:`fb_losses`), F at the batch's actions kept in
+        ``step.forward`` for the components."""
+        return self.fb_losses(step.batch, step.z, step.next_action, step.backward, step.target_input, step)
+
+    def fb_losses(self, batch: Batch, z: torch.Tensor, next_action: torch.Tensor, backward: torch.Tensor,
+                  target_input: torch.Tensor, step: FBStep | None = None) -> dict[str, torch.Tensor]:
         """FB loss (§7.8), auxiliary Q loss (§7.9) and orthonormality loss (§7.10)."""
         c = self.config
         run = self.net_runner
@@ -295,6 +440,8 @@ class FBAgent(Agent):
             heads = self.members
             target_m = row_products(target_forward, target_backward, heads).amin(-3)  # (N, N)
         forward = run(self.forward_map, batch.obs, batch.action, z)  # (2, N, d)
+        if step is not None:
+            step.forward = forward
         m = row_products(forward, backward, heads)  # (2, N, N)
         offdiag = offdiag_mean((m - with_head_axis(discount * target_m, heads)).pow(2))  # (2,)
         diag = m.diagonal(dim1=-2, dim2=-1).mean(-1)  # (2,)
@@ -316,24 +463,7 @@ class FBAgent(Agent):
             losses["implicit_reward"] = member_mean(reward, self.members)
             total = total + c.q_loss_coef * q_loss
         losses["fb_total"] = total
-        losses.update(self._fb_penalties(batch, z, forward, backward))
         return losses
-
-    def _fb_penalties(self, batch: Batch, z: torch.Tensor, forward: torch.Tensor,
-                      backward: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Extra terms of the FB step from the batch's F and B, weighted in :meth:`_fb_step`
-        (conservative FB: its penalty). FB: none."""
-        return {}
-
-    def _fb_step(self, batch, z, next_action, backward, target_input, metrics) -> None:
-        losses = self.fb_losses(batch, z, next_action, backward, target_input)
-        minimise(self.fb_optimizer, self._fb_objective(losses, metrics))
-        metrics.update({k: v.detach() for k, v in losses.items()})
-
-    def _fb_objective(self, losses: dict[str, torch.Tensor], metrics: dict) -> torch.Tensor:
-        """What the FB step minimises, from :meth:`fb_losses` (conservative FB: plus its weighted
-        penalty). FB: ``fb_total``."""
-        return losses["fb_total"]
 
     def actor_loss(self, obs: torch.Tensor, z: torch.Tensor, metrics: dict) -> torch.Tensor:
         """``-mean(Q_M + bonus)`` with ``Q_M = min_k F_k(s, a~, z) . z`` (§7.11)."""
@@ -342,9 +472,10 @@ class FBAgent(Agent):
         action = training_action(run(self.actor, obs, z), c.stddev, c.stddev_clip, self.generator)
         skill_value = skill_values(run(self.forward_map, obs, action, z), z).amin(-2)
         objective = skill_value
-        bonus = self._actor_bonus(obs, z, action, skill_value, metrics)
-        if bonus is not None:
-            objective = objective + bonus
+        for part in self.parts:
+            bonus = part.actor_bonus(self, obs, z, action, skill_value, metrics)
+            if bonus is not None:
+                objective = objective + bonus
         metrics["skill_value"] = member_mean(skill_value.detach(), self.members)
         return -member_mean(objective, self.members)
 
@@ -357,61 +488,14 @@ class FBAgent(Agent):
         minimise(self.actor_optimizer, loss, inputs=list(self.actor.parameters()))
         metrics["actor_loss"] = loss.detach()
 
-    # Zero-shot inference ------------------------------------------------------------------------
-    @torch.no_grad()
-    def infer_z(self, obs: torch.Tensor, next_obs: torch.Tensor, reward: torch.Tensor,
-                quantile: float | None = 0.99) -> tuple[torch.Tensor, dict]:
-        """z_r from reward-labelled transitions (§8.2); falls back to a prior draw if zero."""
-        features = self.backward_features(obs, next_obs)
-        z, info = infer_z_from_rewards(features, reward, quantile)
-        if info["fallback"] == "zero":
-            log.warning("inferred z is zero (all rewards 0?): falling back to a random z ~ p(z)")
-            z = self.sample_z(1)[0]
-            info["fallback"] = "prior"
-        return z, info
-
-    @torch.no_grad()
-    def infer_z_from_goal(self, goal_obs: torch.Tensor) -> torch.Tensor:
-        """z = proj(B(goal)) for a goal state (state mode) or goal transition (pair modes)."""
-        goal = goal_obs.reshape(1, -1).to(self.device, torch.float32)
-        if self.config.backward_input != "state" and goal.shape[-1] == self.obs_dim:
-            goal = torch.cat([goal, goal], dim=-1)  # a goal "transition" that stays at the goal
-        return project_to_sphere(self.backward_map(goal))[0]
-
-    def infer_skill(self, obs, next_obs, reward, inference) -> tuple[torch.Tensor, dict]:
-        return self.infer_z(obs, next_obs, reward, inference.reward_quantile)
-
-    def skill_from_goal(self, goal_obs: torch.Tensor) -> torch.Tensor:
-        return self.infer_z_from_goal(goal_obs)
-
-    def goal_widths(self) -> tuple[int, ...]:
-        # B's pair inputs also take a goal transition (s, s').
-        return (self.obs_dim,) if self.config.backward_input == "state" else (self.obs_dim, 2 * self.obs_dim)
-
-    learns_skill_value = True
-
-    @torch.no_grad()
-    def skill_value(self, obs: torch.Tensor, action: torch.Tensor, z: torch.Tensor,
-                    task: torch.Tensor | None = None) -> torch.Tensor:
-        """``min_k F_k(s, a, z) . z_task`` (``Q_M`` when the task is z itself) for evaluation and analysis."""
-        zz = z.expand(obs.shape[0], -1) if z.dim() == 1 else z
-        tt = zz if task is None else (task.expand(obs.shape[0], -1) if task.dim() == 1 else task)
-        return skill_values(self.forward_map(obs, action, zz), tt).amin(0)
-
-    def nonfinite_hint(self, metric_names: list[str]) -> str:
-        if any("implicit_reward" in k for k in metric_names):
-            return ("the implicit reward B Cov(B)^-1 z is not finite: Cov(B) is singular or ill-conditioned, add "
-                    "a ridge with --fb.cov-ridge 1e-6 (or larger)")
-        return ""
-
     # Checkpointing -------------------------------------------------------------------------------
     def pretrained_modules(self) -> dict[str, nn.Module]:
-        """What fine-tuning and zero-shot need from pre-training (§7.1, §9.1)."""
+        """What fine-tuning and zero-shot need from pre-training (§7.1, §9.1), and the targets."""
         return {"actor": self.actor, "forward_map": self.forward_map, "backward_map": self.backward_map,
                 "forward_target": self.forward_target, "backward_target": self.backward_target}
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        return {"fb_optimizer": self.fb_optimizer, "actor_optimizer": self.actor_optimizer}
+        return {name: getattr(self, name) for name in self.optimizer_names}
 
 
 # Registration (beside the agent).

@@ -22,16 +22,14 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from dvfb.agents.base import Agent, ReplayNeeds
-from dvfb.agents.fb import FBAgent
+from dvfb.agents.base import ReplayNeeds
+from dvfb.agents.fb import FBAgent, FBModel, FBStep
 from dvfb.config import param
-from dvfb.errors import ConfigError
-from dvfb.execution import NetRunner, PerfConfig
-from dvfb.nets import Actor, ForwardMap, adam, make_target, project_to_sphere, sample_z_prior, skill_values, training_action
-from dvfb.nets.features import FEATURE_LEARNERS
-from dvfb.nets.members import minimise, rand, randperm, take_rows, with_head_axis
 from dvfb.data import Batch
-from dvfb.skills import SkillSpec
+from dvfb.errors import ConfigError
+from dvfb.nets import ForwardMap, adam, project_to_sphere, sample_z_prior, skill_values, training_action
+from dvfb.nets.features import FEATURE_LEARNERS
+from dvfb.nets.members import rand, randperm, take_rows, with_head_axis
 
 log = logging.getLogger(__name__)
 
@@ -75,42 +73,21 @@ def regress_task_vector(features: torch.Tensor, rewards: torch.Tensor) -> torch.
     return project_to_sphere(solution).to(features.dtype)
 
 
-class SFAgent(FBAgent):
-    """Successor features with a registered feature learner (see the module docstring)."""
+class SFModel(FBModel):
+    """A pre-trained successor-feature agent: FB's actor, the successor features psi in F's place and
+    the learned features phi in B's (inside the feature learner, whose snapshot holds its auxiliary
+    networks too); zero-shot by the regression of rewards on phi(s')."""
 
     name = "sf"
+    TARGETS = (("successor_map", "successor_target"),)
 
-    @classmethod
-    def from_config(cls, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> SFAgent:
-        return cls(obs_dim, action_dim, config.sf, device, config.perf)
-
-    def __init__(self, obs_dim: int, action_dim: int, config: SFConfig, device: str | torch.device = "cpu",
-                 perf: PerfConfig | None = None):
-        # FB's constructor builds B and FB's optimiser; SF builds its own networks instead.
-        Agent.__init__(self)
-        self.obs_dim, self.action_dim, self.config = obs_dim, action_dim, config
+    def build_representation(self, config: SFConfig) -> None:
         c = config
         if c.features not in FEATURE_LEARNERS:
             raise ValueError(f"features must be one of {tuple(FEATURE_LEARNERS)}, got {c.features!r}")
-        self.skill = SkillSpec("sphere", c.z_dim, every=c.skill_every)
-        self.actor = Actor(obs_dim, c.z_dim, action_dim, c.hidden_dim, c.feature_dim, c.actor_arch)
-        self.successor_map = ForwardMap(obs_dim, action_dim, c.z_dim, c.hidden_dim, c.feature_dim)
-        self.successor_target = make_target(self.successor_map)
-        self.feature_learner = FEATURE_LEARNERS[c.features](obs_dim, action_dim, c.z_dim, c.backward_hidden_dim,
-                                                            c.tau, c.discount)
-        self.to(device)
-        self.device = torch.device(device)
-        # psi and phi have separate objectives; one optimiser with a group each is the same
-        # (Adam is element-wise) and steps once.
-        self.sf_optimizer = adam([{"params": self.successor_map.parameters()},
-                                  {"params": self.feature_learner.parameters(), "lr": c.lr * c.feature_lr_coef}],
-                                 lr=c.lr, fused=c.fused_adam)
-        self.actor_optimizer = adam(self.actor.parameters(), c.lr, c.fused_adam)
-        self._ema_target_params = list(self.successor_target.parameters())
-        self._ema_online_params = list(self.successor_map.parameters())
-        self._actor_frozen_params = list(self.successor_map.parameters())
-        self.net_runner = NetRunner(perf, self.device)
-        self.net_runner.compile(self.update_networks())
+        self.successor_map = ForwardMap(self.obs_dim, self.action_dim, c.z_dim, c.hidden_dim, c.feature_dim)
+        self.feature_learner = FEATURE_LEARNERS[c.features](self.obs_dim, self.action_dim, c.z_dim,
+                                                            c.backward_hidden_dim, c.tau, c.discount)
 
     @property
     def forward_map(self) -> nn.Module:
@@ -123,8 +100,64 @@ class SFAgent(FBAgent):
         """phi(s), the state features whose successor features psi learns."""
         return self.feature_learner.phi
 
-    def target_pairs(self) -> list[tuple[nn.Module, nn.Module]]:
-        return [(self.successor_target, self.successor_map)]
+    def snapshot_modules(self) -> dict[str, nn.Module]:
+        return {"actor": self.actor, "successor_map": self.successor_map, "feature_learner": self.feature_learner}
+
+    @torch.no_grad()
+    def backward_features(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
+        """phi(s') of transitions: what rewards are regressed on (and fine-tuning maps rewards with)."""
+        return self.features(next_obs)
+
+    def infer_skill(self, obs, next_obs, reward, inference) -> tuple[torch.Tensor, dict]:
+        """z_r from the least-squares regression of the rewards on phi(s') (docs/methods.md,
+        "Successor features"); a prior draw if the rewards give no direction."""
+        z = regress_task_vector(self.backward_features(obs, next_obs), reward)
+        info: dict = {"num_samples": int(reward.numel()), "fallback": None}
+        if float(z.norm()) == 0.0:
+            log.warning("the reward regression gave z = 0 (all rewards 0?): falling back to a random z ~ p(z)")
+            z = self.sample_skill(1)[0]
+            info["fallback"] = "prior"
+        return z, info
+
+    def skill_from_goal(self, goal_obs: torch.Tensor) -> torch.Tensor:
+        raise ConfigError("successor features have no goal-reaching skill (their features are not a measure); "
+                          "use --skill-source rewards or reward_fn")
+
+    def goal_widths(self) -> tuple[int, ...]:
+        return (self.obs_dim,)
+
+    def nonfinite_hint(self, metric_names: list[str]) -> str:
+        return ""
+
+
+class SFAgent(FBAgent):
+    """The successor features' learner: FB's, with psi's TD loss and the feature learner's loss in
+    place of the FB loss, and training skills from phi (see the module docstring)."""
+
+    name = "sf"
+    model_cls = SFModel
+    objective_key = "sf_total"
+    representation_optimizer = "sf_optimizer"
+
+    @classmethod
+    def config_section(cls, config):
+        return config.sf
+
+    @property
+    def forward_map(self) -> nn.Module:
+        return self.successor_map
+
+    @property
+    def features(self) -> nn.Module:
+        return self.feature_learner.phi
+
+    def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        # psi and phi have separate objectives; one optimiser with a group each is the same
+        # (Adam is element-wise) and steps once.
+        c = self.config
+        return {"sf_optimizer": adam([{"params": self.successor_map.parameters()},
+                                      {"params": self.feature_learner.parameters(), "lr": c.lr * c.feature_lr_coef}],
+                                     lr=c.lr, fused=c.fused_adam)}
 
     def update_networks(self) -> list[nn.Module]:
         return [self.actor, self.successor_map, self.successor_target, self.features]
@@ -150,20 +183,14 @@ class SFAgent(FBAgent):
         return torch.where(replace, goals, z)
 
     # The update ------------------------------------------------------------------------------------
-    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
-        """psi's TD step with the feature learner's step (one optimiser step), then the actor and
-        the successor target's EMA."""
-        c = self.config
-        run = self.net_runner
-        metrics: dict[str, torch.Tensor] = {}
-        next_features = run(self.features, batch.next_obs)  # with its graph, for the feature loss
+    def prepare(self, batch: Batch) -> FBStep:
+        """phi(s') with its graph (for the feature loss) and the training skills from it."""
+        next_features = self.net_runner(self.features, batch.next_obs)
         z = self.feature_skills(next_features.detach())
-        losses = self.sf_losses(batch, z, next_features)
-        minimise(self.sf_optimizer, losses["sf_total"])
-        metrics.update({k: v.detach() for k, v in losses.items()})
-        self._actor_step(batch.obs, z, metrics)
-        self.soft_update_targets()
-        return metrics
+        return FBStep(batch, z, None, extra={"next_features": next_features})
+
+    def representation_losses(self, step: FBStep) -> dict[str, torch.Tensor]:
+        return self.sf_losses(step.batch, step.z, step.extra["next_features"])
 
     def sf_losses(self, batch: Batch, z: torch.Tensor, next_features: torch.Tensor) -> dict[str, torch.Tensor]:
         """The TD loss on the projections ``psi_k . z`` and the feature learner's loss."""
@@ -184,37 +211,10 @@ class SFAgent(FBAgent):
         return {"sf_loss": sf_loss, "feature_loss": feature_loss, "sf_total": sf_loss + feature_loss,
                 **feature_metrics}
 
-    # Zero-shot ------------------------------------------------------------------------------------
-    @torch.no_grad()
-    def backward_features(self, obs: torch.Tensor, next_obs: torch.Tensor) -> torch.Tensor:
-        """phi(s') of transitions: what rewards are regressed on (and fine-tuning maps rewards with)."""
-        return self.features(next_obs)
-
-    def infer_skill(self, obs, next_obs, reward, inference) -> tuple[torch.Tensor, dict]:
-        """z_r from the least-squares regression of the rewards on phi(s') (docs/methods.md,
-        "Successor features"); a prior draw if the rewards give no direction."""
-        z = regress_task_vector(self.backward_features(obs, next_obs), reward)
-        info: dict = {"num_samples": int(reward.numel()), "fallback": None}
-        if float(z.norm()) == 0.0:
-            log.warning("the reward regression gave z = 0 (all rewards 0?): falling back to a random z ~ p(z)")
-            z = self.sample_z(1)[0]
-            info["fallback"] = "prior"
-        return z, info
-
-    def skill_from_goal(self, goal_obs: torch.Tensor) -> torch.Tensor:
-        raise ConfigError("successor features have no goal-reaching skill (their features are not a measure); "
-                          "use --skill-source rewards or reward_fn")
-
-    def goal_widths(self) -> tuple[int, ...]:
-        return (self.obs_dim,)
-
     # Checkpointing -------------------------------------------------------------------------------
     def pretrained_modules(self) -> dict[str, nn.Module]:
         return {"actor": self.actor, "successor_map": self.successor_map, "successor_target": self.successor_target,
                 "feature_learner": self.feature_learner}
-
-    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        return {"sf_optimizer": self.sf_optimizer, "actor_optimizer": self.actor_optimizer}
 
 
 # Registration (beside the agent).

@@ -32,6 +32,7 @@ from scipy import stats
 
 from dvfb.analysis.common import Score
 from dvfb.analysis.normalise import REFERENCE_METHODS, Normaliser
+from dvfb.envs import TASKS
 
 METRICS = ("iqm", "mean", "median", "optimality_gap")
 METRIC_TITLES = {"iqm": "IQM", "mean": "mean", "median": "median", "optimality_gap": "optimality gap"}
@@ -121,7 +122,6 @@ def common_tasks(scores: Sequence[Score]) -> list[str]:
 
 def _task_order(task: str) -> tuple:
     """Registry order (docs/tasks.md), unknown tasks last by name."""
-    from dvfb.envs import TASKS
 
     names = list(TASKS)
     return (names.index(task), "") if task in names else (len(names), task)

@@ -20,8 +20,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dvfb.agents import AGENTS, get_spec
 from dvfb.errors import DvfbError
 from dvfb.files import read_json as read_json_file
+from dvfb.runs.layout import discover
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +44,6 @@ def method_name(run_config: Any, finetune: Any | None = None) -> str:
     dataset appends ``@`` and the dataset directory's name (``vcfb@rnd_walker``). ``run_config`` is the
     pre-training run's config; ``finetune`` a fine-tuning run's ``finetune`` section.
     """
-    from dvfb.agents import get_spec
 
     agent = _field(run_config, "agent", None)
     try:
@@ -65,7 +66,6 @@ def _field(config: Any, name: str, default: Any) -> Any:
 def method_sort_key(name: str) -> tuple:
     """Column order of the tables: registered methods by their ``column`` (then registry order),
     each followed by its variants, then unknown names, random last."""
-    from dvfb.agents import AGENTS
 
     if name == "random":
         return (3, 0, 0, 0, name)
@@ -139,8 +139,6 @@ class Runs:
 def discover_runs(paths: Sequence[str | os.PathLike]) -> Runs:
     """Every pre-training and fine-tuning run in or under ``paths`` (:func:`dvfb.runs.layout.discover`).
     Raises :class:`AnalysisError` if a path does not exist or is not a directory."""
-    from dvfb.runs.layout import discover  # the run configs import the agents: not needed by every report
-
     pretrain, finetune = discover(paths, AnalysisError)
     wrapped = {id(run): PretrainRun(run) for run in pretrain}
     return Runs([wrapped[id(run)] for run in pretrain],

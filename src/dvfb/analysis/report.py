@@ -25,6 +25,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from dvfb.analysis import aggregate_report
+from dvfb.analysis.aggregate_report import BootstrapConfig
 from dvfb.analysis.common import (
     SUCCESS,
     AnalysisError,
@@ -34,12 +36,10 @@ from dvfb.analysis.common import (
     random_scores,
     zeroshot_scores,
 )
-from dvfb.analysis import aggregate_report
-from dvfb.analysis.aggregate_report import BootstrapConfig
 from dvfb.analysis.curves import load_curves, plot_curves
 from dvfb.analysis.normalise import CHOICES, NORMALISERS
-from dvfb.runs import check_writable
 from dvfb.analysis.tables import Table, build_table, success_markdown_section, table_markdown_section, to_csv
+from dvfb.runs import check_writable
 
 TABLE1 = "Table 1: zero-shot"
 TABLE2 = "Table 2: fine-tuning (last evaluation of each curve)"

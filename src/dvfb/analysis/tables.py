@@ -22,17 +22,19 @@ Missing results are gaps (``–`` in markdown, an empty cell in CSV), never zero
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
 from dvfb.analysis.common import Score, method_sort_key
-from dvfb.analysis.normalise import NORMALISERS, Normaliser, normalisers as available_normalisers
+from dvfb.analysis.normalise import NORMALISERS, Normaliser
+from dvfb.analysis.normalise import normalisers as available_normalisers
+from dvfb.envs.registry import DOMAINS, tasks_of_domain
 
 GAP = "–"
 SPREADS = ("std", "se")
@@ -101,7 +103,6 @@ class Table:
 
 def _domains_and_tasks(scores: Iterable[Score]) -> list[tuple[str, list[str]]]:
     """Domains in registry order with all their tasks; unknown domains keep the tasks seen."""
-    from dvfb.envs.registry import DOMAINS, tasks_of_domain
 
     seen: dict[str, set[str]] = defaultdict(set)
     for score in scores:

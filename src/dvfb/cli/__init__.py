@@ -45,6 +45,7 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
 
 def _requested_agent(argv: list[str]) -> str:
     """The value of ``pretrain --agent`` (which decides the config flags), before the full parse."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.agents import agent_names
 
     if "pretrain" not in argv:

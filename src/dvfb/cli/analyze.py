@@ -8,6 +8,7 @@ from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_
 
 def cmd_analyze_value(args: argparse.Namespace) -> int:
     """Skill value vs return (paper §4, Fig. 3b)."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.workflows.value import analyze_value
 
     summary = analyze_value(args.run, args.task, skills=args.skills, episodes_per_skill=args.episodes_per_skill,
@@ -29,6 +30,7 @@ def cmd_analyze_value(args: argparse.Namespace) -> int:
 
 def cmd_analyze_exploration(args: argparse.Namespace) -> int:
     """Skill trajectories and state coverage (paper Fig. 2)."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.workflows.exploration import analyze_exploration
 
     summary = analyze_exploration(args.run, skills=args.skills, repeats=args.repeats, steps=args.steps,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,7 @@ def parse_goal(text: str) -> np.ndarray:
 
 
 def pretrain_config(args: argparse.Namespace):
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.runs.presets import preset_config
     from dvfb.runs.run_config import run_config_class
 
@@ -45,6 +47,7 @@ def pretrain_config(args: argparse.Namespace):
 
 def protocol_classes(kind: str) -> list[type]:
     """The config classes of every registered zero-shot protocol (``inference``) or fine-tuner."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS
 
     registry = ZERO_SHOT_PROTOCOLS if kind == "inference" else FINETUNERS
@@ -123,3 +126,18 @@ def progress_flag(p: argparse.ArgumentParser) -> None:
     p.add_argument("--progress", dest="progress", action="store_true", default=None,
                    help="always show the progress bar (default: only on a terminal)")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="never show it")
+
+
+class DeprecatedAlias(argparse.Action):
+    """A flag with an old name that still works: the old name stores the value and says, in one
+    line on stderr, which name to use (``deprecated``: the old option strings)."""
+
+    def __init__(self, option_strings, dest, deprecated: tuple[str, ...] = (), **kwargs):
+        super().__init__(option_strings, dest, **kwargs)
+        self.deprecated = deprecated
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if option_string in self.deprecated:
+            current = next(o for o in self.option_strings if o not in self.deprecated)
+            print(f"{parser.prog}: note: {option_string} is deprecated; use {current}", file=sys.stderr)
+        setattr(namespace, self.dest, values)

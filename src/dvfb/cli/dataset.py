@@ -10,6 +10,7 @@ from dvfb.cli.common import Formatter, progress_flag
 def cmd_export(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.data.datasets import EPISODES_DIR, describe
     from dvfb.training.progress import progress_bars
     from dvfb.workflows.datasets import default_export_dir, export_run
@@ -23,6 +24,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_relabel(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.data.datasets import default_relabel_dir, describe, relabel
     from dvfb.training.progress import progress_bars
 

@@ -17,6 +17,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     one task, then a short live pre-training that shows the pipeline (docs: README, "Two commands")."""
     import shutil
 
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb import envs
     from dvfb.workflows.video import record_video
     from dvfb.errors import DvfbError
@@ -65,6 +66,7 @@ def bundled_demo_run() -> Path:
     """The pre-trained DVFB walker run shipped in the package (config, snapshot, provenance)."""
     from importlib import resources
 
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.runs.layout import run_kind
 
     path = Path(str(resources.files("dvfb") / "data" / "demo_walker_dvfb"))

@@ -7,14 +7,16 @@ import argparse
 from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, progress_flag, protocol_overrides
 
 def cmd_finetune(args: argparse.Namespace) -> int:
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.runs.layout import FinetuneRun
-    from dvfb.workflows.finetune import finetune, finetune_group
+    from dvfb.workflows.finetune import finetune
 
     options = dict(snapshot=args.snapshot, seed=args.seed, name=args.name,
                    inference=protocol_overrides(args, "inference"), finetune=protocol_overrides(args, "finetune"),
                    resume=args.resume, overwrite=args.overwrite, progress=args.progress)
-    runs = finetune_group(args.run, args.task, **options) if len(args.run) > 1 \
-        else [finetune(args.run[0], args.task, **options)]
+    many = len(args.run) > 1
+    runs = finetune(args.run if many else args.run[0], args.task, **options)
+    runs = runs if many else [runs]
     for run in runs:
         summary = FinetuneRun(run.path, None).summary()
         print(f"fine-tuning finished: {run.path}")

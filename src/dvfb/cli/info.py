@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 def cmd_tasks(args: argparse.Namespace) -> int:
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb import envs
 
     print(envs.format_task_table())
@@ -13,6 +14,7 @@ def cmd_tasks(args: argparse.Namespace) -> int:
 
 def cmd_agents(args: argparse.Namespace) -> int:
     """The registered methods, from the registry."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.agents import AGENTS
 
     rows = [(s.name, s.family, s.zero_shot, s.finetuner, ", ".join(s.sections)) for s in AGENTS.values()]

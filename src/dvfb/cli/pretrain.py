@@ -11,12 +11,13 @@ from dvfb.cli.common import (DEFAULT_PRESET, Formatter, default_run_dir, member_
 from dvfb.config import add_arguments
 
 def cmd_pretrain(args: argparse.Namespace) -> int:
-    from dvfb.workflows.pretrain import pretrain, pretrain_group
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
+    from dvfb.workflows.pretrain import pretrain
 
     config = pretrain_config(args)
     if args.seeds is not None:
-        runs = pretrain_group(config, args.seeds, member_run_dirs(config, args.run_dir, args.seeds),
-                              resume=args.resume, overwrite=args.overwrite, progress=args.progress, command=sys.argv)
+        runs = pretrain(config, member_run_dirs(config, args.run_dir, args.seeds), seeds=args.seeds,
+                        resume=args.resume, overwrite=args.overwrite, progress=args.progress, command=sys.argv)
         for run in runs:
             print(f"pre-training finished: {run.path}")
         return 0
@@ -28,6 +29,7 @@ def cmd_pretrain(args: argparse.Namespace) -> int:
 
 
 def register(sub, agent: str) -> None:
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.agents import agent_names
     from dvfb.runs.presets import PRESETS, preset_config
     from dvfb.runs.run_config import run_config_class

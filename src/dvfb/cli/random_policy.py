@@ -11,6 +11,7 @@ from dvfb.errors import ConfigError
 
 def cmd_random_policy(args: argparse.Namespace) -> int:
     """Returns of a uniform-random policy on every task of a domain (the table's floor)."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb import envs
     from dvfb.runs import write_json_atomic
     from dvfb.workflows.zeroshot import random_policy_evaluation

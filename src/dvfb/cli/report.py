@@ -8,6 +8,7 @@ from dvfb.cli.common import Formatter
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Tables 1, 2 and 6 of the paper and fine-tuning curves from run directories."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.analysis import aggregate_report
     from dvfb.analysis.aggregate_report import BootstrapConfig
     from dvfb.analysis.report import make_report
@@ -33,6 +34,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def register(sub, agent: str) -> None:
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.analysis.aggregate import BOOTSTRAP_SAMPLES, CONFIDENCE
     from dvfb.analysis.normalise import CHOICES
 

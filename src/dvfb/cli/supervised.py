@@ -14,6 +14,7 @@ AGENT = "supervised"
 
 def supervised_config(args: argparse.Namespace):
     """The run config of ``dvfb supervised``: the preset, the flags, and the task's domain."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb import envs
     from dvfb.runs.presets import preset_config
     from dvfb.runs.run_config import run_config_class
@@ -27,6 +28,7 @@ def supervised_config(args: argparse.Namespace):
 
 
 def cmd_supervised(args: argparse.Namespace) -> int:
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.workflows.pretrain import pretrain
     from dvfb.runs.layout import PretrainRun
     from dvfb.workflows.zeroshot import zeroshot
@@ -46,6 +48,7 @@ def cmd_supervised(args: argparse.Namespace) -> int:
 
 
 def register(sub, agent: str) -> None:
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.runs.presets import PRESETS, preset_config
     from dvfb.runs.run_config import run_config_class
 

@@ -8,6 +8,7 @@ from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_
 
 def cmd_video(args: argparse.Namespace) -> int:
     """A video of zero-shot evaluation episodes."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.workflows.video import record_video
 
     result = record_video(args.run, args.task, episodes=args.episodes, out=args.out, max_steps=args.max_steps,

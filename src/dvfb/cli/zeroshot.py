@@ -4,18 +4,21 @@ from __future__ import annotations
 
 import argparse
 
-from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, parse_goal, progress_flag, protocol_overrides
+from dvfb.cli.common import (DeprecatedAlias, Formatter, add_protocol_arguments, add_snapshot_and_seed, parse_goal,
+                             progress_flag, protocol_overrides)
 
 
 def cmd_zeroshot(args: argparse.Namespace) -> int:
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.workflows.resources import open_run
-    from dvfb.workflows.zeroshot import zeroshot, zeroshot_group
+    from dvfb.workflows.zeroshot import zeroshot
 
     group = len(args.run) > 1
     first_run = open_run(args.run[0])
     config = first_run.config
     for other in args.run[1:]:
         open_run(other)  # names a missing or broken run before any work
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.workflows.resources import evaluation_tasks
 
     # Every task is checked before the first is run: a bad second name must not leave a first result.
@@ -27,12 +30,8 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
                    dataset=args.dataset)
     rows = []
     for task in tasks:
-        if group:
-            results = zeroshot_group(args.run, task, skip_existing=args.skip_existing, **options)
-        elif args.skip_existing and not args.overwrite and first_run.zeroshot_result(task, args.snapshot).exists():
-            results = [None]
-        else:
-            results = [zeroshot(args.run[0], task, **options)]
+        results = zeroshot(args.run if group else args.run[0], task, skip_existing=args.skip_existing, **options)
+        results = results if group else [results]
         for run, result in zip(args.run, results):
             if result is not None:
                 rows.append((task, run, result["mean_return"], result["std_return"], result["eval_episodes"],
@@ -58,11 +57,12 @@ def register(sub, agent: str) -> None:
                                           "forward passes (docs/members.md)")
     p.add_argument("--task", nargs="+", required=True, help="task name(s) of the run's domain, or 'all'")
     add_snapshot_and_seed(p, "task seed")
-    p.add_argument("--skill-source", "--z-source", dest="skill_source", default="rewards",
+    p.add_argument("--skill-source", "--z-source", dest="skill_source", default="rewards", action=DeprecatedAlias,
+                   deprecated=("--z-source",),
                    choices=("rewards", "reward_fn", "dataset", "goal"),
                    help="where the task's skill comes from: interaction with the task (every method), a reward "
                         "function over the run's replay states, a dataset relabelled for the task from its physics "
-                        "states, or a goal (methods that infer skills); --z-source is the old name "
+                        "states, or a goal (methods that infer skills); --z-source is its deprecated old name "
                         "(default: %(default)s)")
     p.add_argument("--dataset", default=None, help="--skill-source dataset: the dataset directory (default: the one "
                                                    "an offline run trained on)")

@@ -475,6 +475,23 @@ class ReplayBuffer:
         return self._gather(torch.from_numpy(slot).to(self.device),
                             torch.from_numpy(step).to(self.device), gamma, need_future=False)
 
+    def episodes(self):
+        """Every stored episode, oldest first (the one in progress too), as host arrays
+        ``(obs (T+1, O), action (T, U), reward (T,), discount (T,))``: the environment's discounts,
+        the episode boundaries as they were stored."""
+        counts = self._lengths[self._ring_slots()]
+        data = self.transitions(gamma=1.0)
+        obs, next_obs = data.obs.cpu().numpy(), data.next_obs.cpu().numpy()
+        action = data.action.cpu().numpy()
+        reward, discount = data.reward.cpu().numpy()[:, 0], data.discount.cpu().numpy()[:, 0]
+        start = 0
+        for count in counts:
+            end = start + int(count)
+            if end > start:
+                yield (np.concatenate([obs[start:end], next_obs[end - 1:end]]), action[start:end], reward[start:end],
+                       discount[start:end])
+            start = end
+
     def _gather(self, slot: torch.Tensor, step: torch.Tensor, gamma: float,
                 need_future: bool) -> Batch:
         return Batch(

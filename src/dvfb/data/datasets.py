@@ -47,8 +47,8 @@ import numpy as np
 import torch
 
 from dvfb import __version__, envs
-from dvfb.errors import ConfigError, DvfbError
 from dvfb.data.buffer import PHYSICS_COLUMN, Column, ReplayBuffer, physics_columns
+from dvfb.errors import ConfigError, DvfbError
 from dvfb.files import read_json, write_json_atomic
 
 DATASET_FORMAT = 1

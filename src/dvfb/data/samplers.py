@@ -11,7 +11,6 @@ import torch
 from dvfb.config import param
 from dvfb.errors import CheckpointError, ConfigError
 
-
 REPLAY_SAMPLINGS = ("uniform", "loader_shards")
 
 

@@ -15,7 +15,7 @@ from dvfb.nets.layers import (  # noqa: F401
     TWIN_HEAD_INITS, TwinHead, adam, call_network, freeze_, full_precision, layernorm_tanh_layer, make_target, mlp,
     orthogonal_init_, soft_update_, twin_td_loss)
 from dvfb.nets.maps import (  # noqa: F401
-    BackwardMap, ForwardMap, TwinCritic, offdiag_mean, orthonormality_loss, skill_values)
+    BackwardMap, ForwardMap, TwinCritic, implicit_reward, offdiag_mean, orthonormality_loss, skill_values)
 from dvfb.nets.policy import (  # noqa: F401
     ACTION_EPS, Actor, HostActor, TwoStreamEncoder, rollout_action, standard_normal, training_action)
 from dvfb.nets.stats import RunningMeanStd  # noqa: F401

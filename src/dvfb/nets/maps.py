@@ -1,5 +1,6 @@
-"""The FB family's maps (docs/methods.md §4.2-§4.4): F, B, the skill values ``F.z`` and the twin
-critic ``Q(s, a, z)`` (also the DDPG core's, with ``out_dim`` for successor features)."""
+"""The FB family's maps (docs/methods.md §4.2-§4.4): F, B, the skill values ``F.z``, the twin
+critic ``Q(s, a, z)`` (also the DDPG core's, with ``out_dim`` for successor features) and the
+implicit reward ``B Cov(B)^-1 z`` (§7.9, §9.4) that FB's auxiliary loss and dual-value fine-tuning read."""
 
 from __future__ import annotations
 
@@ -84,3 +85,27 @@ class TwinCritic(nn.Module):
 
     def forward(self, obs: torch.Tensor, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         return self.heads(self.trunk(torch.cat([obs, z, action], dim=-1)))
+
+
+def implicit_reward(backward: torch.Tensor, z: torch.Tensor, ridge: float = 0.0) -> torch.Tensor:
+    """``r_i = B_i Cov^{-1} z_i`` with ``Cov = B^T B / N`` (§7.9, §9.4), by a linear solve.
+
+    ``z`` is ``(N, d)`` (one z per row) or ``(d,)`` (one z for all rows). Returns ``(N,)``. A group's
+    ``backward`` is ``(M, N, d)``, with ``z`` ``(M, N, d)`` or ``(M, d)``, and the result ``(M, N)``.
+    """
+    n, d = backward.shape[-2:]
+    cov = backward.mT @ backward / n
+    if ridge:
+        cov = cov + ridge * torch.eye(d, device=backward.device, dtype=backward.dtype)
+    per_row = z.dim() == backward.dim()
+    rhs = z.mT if per_row else z.unsqueeze(-1)
+    # solve_ex: no host sync on failure. An exactly singular Cov(B) gives non-finite rewards, which
+    # stop the run with an error naming the step and --fb.cov-ridge when the metrics are read (D19).
+    solution, _info = torch.linalg.solve_ex(cov, rhs)
+    if per_row:
+        return (backward * solution.mT).sum(-1)
+    if backward.dim() == 2:
+        return backward @ solution.squeeze(-1)
+    # A group's one z per member: each member's own matrix-vector product, which rounds as its
+    # separate run's does (a batched product does not).
+    return torch.stack([member @ x.squeeze(-1) for member, x in zip(backward, solution)])

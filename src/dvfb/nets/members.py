@@ -213,7 +213,7 @@ def stack_agents(agents: list) -> object:
         else:
             owner._buffers[name] = stacked
     _stack_optimizer_states(lead, optimizer_states)
-    for module in lead.modules():
+    for module in _with_model(lead):
         cls = MEMBER_CLASSES.get(type(module))
         if cls is not None:
             module.__class__ = cls
@@ -222,17 +222,33 @@ def stack_agents(agents: list) -> object:
     return lead
 
 
+def _with_model(agent) -> list:
+    """The agent's modules and, for a learner whose model is not one of them, the model itself
+    (its networks are the learner's; its own ``members`` and ``generator`` must follow)."""
+    modules = list(agent.modules())
+    model = getattr(agent, "model", None)
+    if isinstance(model, nn.Module) and all(model is not m for m in modules):
+        modules.append(model)
+    return modules
+
+
+def _optimizers(agent) -> dict:
+    """The optimisers of a learner or fine-tuner; a model (inference only) has none."""
+    optimizers = getattr(agent, "optimizers", None)
+    return optimizers() if optimizers is not None else {}
+
+
 def _optimizer_tensors(agent) -> dict[str, list[dict]]:
     """Each optimiser's per-parameter state, in parameter order."""
     out = {}
-    for name, opt in agent.optimizers().items():
+    for name, opt in _optimizers(agent).items():
         params = [p for group in opt.param_groups for p in group["params"]]
         out[name] = [dict(opt.state.get(p, {})) for p in params]
     return out
 
 
 def _stack_optimizer_states(lead, states: list[dict[str, list[dict]]]) -> None:
-    for name, opt in lead.optimizers().items():
+    for name, opt in _optimizers(lead).items():
         params = [p for group in opt.param_groups for p in group["params"]]
         for i, p in enumerate(params):
             per_member = [s[name][i] for s in states]
@@ -281,11 +297,11 @@ def drop_members(agent, keep: list[int]) -> None:
             tensor.data = tensor.data[index.to(tensor.device)].clone()
         else:
             owner._buffers[name] = tensor[index.to(tensor.device)].clone()
-    for opt in agent.optimizers().values():
+    for opt in _optimizers(agent).values():
         for state in opt.state.values():
             for key, value in list(state.items()):
                 if key != "step" and isinstance(value, torch.Tensor):
                     state[key] = value[index.to(value.device)].clone()
-    for module in agent.modules():
+    for module in _with_model(agent):
         module.members = len(keep)
     agent.use_generator(MemberGenerators(agent.generator[i] for i in keep))

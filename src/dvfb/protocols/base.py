@@ -5,9 +5,9 @@ fine-tuner; each is a registered class with its own typed config, which becomes 
 ``inference`` and ``finetune`` section. Workflows, ``dvfb.load``, the CLI and the analyses call the
 protocol; none of them knows which family it serves.
 
-* :class:`ZeroShotProtocol` -- turns a pre-trained agent and a task into the skill its policy is
+* :class:`ZeroShotProtocol` -- turns a pre-trained model and a task into the skill its policy is
   evaluated with (or None for a single policy), owning its data collection and its result fields;
-* :class:`Finetuner` -- trains a pre-trained agent on a task's reward: its updates, its replay
+* :class:`Finetuner` -- trains a pre-trained model on a task's reward: its updates, its replay
   needs, the rollout skill of every step, and its resumable state;
 * :class:`FinetuneSchedule` -- the budget and schedule every fine-tuner's config shares.
 """
@@ -57,17 +57,17 @@ class ZeroShotProtocol:
             raise ConfigError(f"--skill-source {source} needs a method that infers skills from data; {agent_name!r} "
                               f"uses the {self.name} protocol (use the default)")
 
-    def task_skill(self, agent, env, rng: np.random.Generator, episode_length: int, *, progress=None,
+    def task_skill(self, model, env, rng: np.random.Generator, episode_length: int, *, progress=None,
                    keep_data: bool = False) -> tuple[torch.Tensor | None, dict]:
         """The skill for the task of ``env`` from interaction with it, and what the result file
         records about how it was found."""
         raise NotImplementedError
 
-    def skill_from_samples(self, agent, obs: torch.Tensor, next_obs: torch.Tensor,
+    def skill_from_samples(self, model, obs: torch.Tensor, next_obs: torch.Tensor,
                            reward: torch.Tensor) -> tuple[torch.Tensor, dict]:
         raise ConfigError(f"the {self.name} protocol does not infer a skill from reward samples")
 
-    def skill_from_goal(self, agent, goal: np.ndarray) -> tuple[torch.Tensor, dict]:
+    def skill_from_goal(self, model, goal: np.ndarray) -> tuple[torch.Tensor, dict]:
         raise ConfigError(f"the {self.name} protocol does not infer a skill from a goal")
 
 
@@ -90,13 +90,16 @@ class FinetuneSchedule:
 
 
 class Finetuner(nn.Module):
-    """Base class of the fine-tuners: built as ``cls(agent, skill, config)`` from the pre-trained
-    agent and the skill its zero-shot protocol found (None for a single policy).
+    """Base class of the fine-tuners: built as ``cls(model, skill, config)`` from the pre-trained
+    model (:class:`~dvfb.agents.base.Model`) and the skill its zero-shot protocol found (None for a
+    single policy). A fine-tuner is the learner of fine-tuning: it owns its networks and optimisers
+    and trains the model's actor.
 
     ``uniform_seed_actions``: act uniformly during ``seed_frames`` (URLB) or with the policy from
     the first step (the FB family). :meth:`rollout_skill` gives the skill of every step (fixed by
     default); :meth:`keeps_inference_data` says whether the zero-shot protocol's data seed the
-    fine-tuning replay.
+    fine-tuning replay. Every network call of an update goes through the model's ``net_runner``
+    (``--perf.*``); :meth:`update_networks` lists what ``perf.compile`` compiles.
     """
 
     name: ClassVar[str] = ""
@@ -104,27 +107,42 @@ class Finetuner(nn.Module):
     uniform_seed_actions: ClassVar[bool] = True
     members: int = 0  # a group's member count (docs/members.md); 0: one run
 
-    def __init__(self, agent, skill: torch.Tensor | None, config: Any):
+    def __init__(self, model, skill: torch.Tensor | None, config: Any):
         super().__init__()
-        self.agent, self.config = agent, config
+        self.model, self.config = model, config
         # A buffer, so that a group's fine-tuner stacks its members' skills (docs/members.md).
-        self.register_buffer("skill", None if skill is None else skill.detach().clone().to(agent.device))
+        self.register_buffer("skill", None if skill is None else skill.detach().clone().to(model.device))
 
-    # What a group (docs/members.md) stacks: the agent's modules and the fine-tuner's own, its
-    # optimisers' states, and its random stream (the agent's).
+    # What a group (docs/members.md) stacks: the model's modules and the fine-tuner's own, its
+    # optimisers' states, and its random stream (the model's).
     @property
     def generator(self):
-        return self.agent.generator
+        return self.model.generator
 
     def use_generator(self, generator) -> None:
-        self.agent.use_generator(generator)
+        self.model.use_generator(generator)
+
+    @property
+    def net_runner(self):
+        return self.model.net_runner
+
+    def act(self, obs, skills, explore: bool):
+        return self.model.act(obs, skills, explore)
 
     def nonfinite_hint(self, metric_names: list[str]) -> str:
-        return self.agent.nonfinite_hint(metric_names)
+        return self.model.nonfinite_hint(metric_names)
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """The optimisers of fine-tuning (their states are stacked in a group)."""
         raise NotImplementedError
+
+    def update_networks(self) -> list[nn.Module]:
+        """Every network the update calls (what ``perf.compile`` compiles)."""
+        return []
+
+    def compile(self) -> None:
+        """Compile :meth:`update_networks` where ``perf.compile`` asks for it (after construction)."""
+        self.net_runner.compile(self.update_networks())
 
     @classmethod
     def check_group(cls, config: Any) -> None:
@@ -135,8 +153,8 @@ class Finetuner(nn.Module):
         return False
 
     @classmethod
-    def check(cls, agent, config: Any) -> None:
-        """Refuse options that do not fit the agent, before any work (one line, ConfigError)."""
+    def check(cls, model, config: Any) -> None:
+        """Refuse options that do not fit the model, before any work (one line, ConfigError)."""
 
     def rollout_skill(self, step: int, episode_start: bool, current: torch.Tensor | None,
                       generator: torch.Generator | None = None) -> torch.Tensor | None:
@@ -146,8 +164,14 @@ class Finetuner(nn.Module):
     def bind_replay(self, replay) -> None:
         """The fine-tuning replay, for fine-tuners whose rollout skill is computed from it."""
 
+    @classmethod
+    def needs_of(cls, model):
+        """How the fine-tuner of ``model`` samples its replay (:class:`~dvfb.agents.base.ReplayNeeds`),
+        known before it is built (the checks of a fine-tuning)."""
+        raise NotImplementedError
+
     def replay_needs(self):
-        return self.agent.replay_needs()
+        return self.needs_of(self.model)
 
     def update(self, batch) -> dict[str, torch.Tensor]:
         raise NotImplementedError

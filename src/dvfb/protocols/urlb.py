@@ -24,13 +24,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from torch import nn
 
 from dvfb.agents.base import ReplayNeeds
 from dvfb.config import param
+from dvfb.data import Batch
 from dvfb.errors import ConfigError
 from dvfb.nets import make_target
 from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner
-from dvfb.data import Batch
 
 CRITIC_INITS = ("trunk", "all", "none")
 FINETUNE_SKILLS = ("selected", "resample", "random_fixed", "prior_mean", "regressed")
@@ -60,10 +61,10 @@ class DDPGFinetuner(Finetuner):
     config_cls = DDPGFinetuneConfig
     uniform_seed_actions = True
 
-    def __init__(self, agent, skill: torch.Tensor | None, config: DDPGFinetuneConfig):
-        super().__init__(agent, skill, config)
-        core = agent.core
-        fresh = core.build_critic().to(agent.device)
+    def __init__(self, model, skill: torch.Tensor | None, config: DDPGFinetuneConfig):
+        super().__init__(model, skill, config)
+        core = model.core
+        fresh = core.build_critic().to(model.device)
         target = make_target(fresh)
         if config.init_critic == "trunk":
             fresh.trunk.load_state_dict(core.critic.trunk.state_dict())
@@ -71,22 +72,26 @@ class DDPGFinetuner(Finetuner):
             fresh.load_state_dict(core.critic.state_dict())
         core.critic, core.critic_target = fresh, target
         core.make_optimizers()
-        spec = agent.skill
-        self.check(agent, config)
+        spec = model.skill
+        self.check(model, config)
         if spec.has_skill and config.skill == "prior_mean":
-            self.skill = torch.full((spec.dim,), (spec.low + spec.high) / 2, device=agent.device)
+            self.skill = torch.full((spec.dim,), (spec.low + spec.high) / 2, device=model.device)
         elif spec.has_skill and config.skill == "random_fixed":
-            self.skill = agent.sample_skill(1)[0]
+            self.skill = model.sample_skill(1)[0]
         self.replay = None
 
     @classmethod
-    def check(cls, agent, config: DDPGFinetuneConfig) -> None:
-        spec = agent.skill
+    def check(cls, model, config: DDPGFinetuneConfig) -> None:
+        spec = model.skill
         if spec.has_skill and config.skill == "prior_mean" and spec.kind != "box":
-            raise ConfigError(f"--finetune.skill prior_mean needs a box prior; {agent.name!r} has a {spec.kind} skill")
+            raise ConfigError(f"--finetune.skill prior_mean needs a box prior; {model.name!r} has a {spec.kind} skill")
         if spec.has_skill and config.skill == "regressed":
-            agent.regress_skill(torch.zeros(1, agent.obs_dim, device=agent.device),
-                                torch.ones(1, 1, device=agent.device))  # its one-line error if it has none
+            model.regress_skill(torch.zeros(1, model.obs_dim, device=model.device),
+                                torch.ones(1, 1, device=model.device))  # its one-line error if it has none
+
+    def update_networks(self) -> list[nn.Module]:
+        core = self.model.core
+        return [core.actor, core.critic, core.critic_target]
 
     @classmethod
     def check_group(cls, config: DDPGFinetuneConfig) -> None:
@@ -95,46 +100,47 @@ class DDPGFinetuner(Finetuner):
                               "goes; fine-tune these runs one at a time")
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        return self.agent.core.optimizers()
+        return self.model.core.optimizers()
 
     def bind_replay(self, replay) -> None:
         self.replay = replay
 
     def rollout_skill(self, step, episode_start, current, generator=None):
-        spec, c = self.agent.skill, self.config
+        spec, c = self.model.skill, self.config
         if c.skill == "resample" and spec.has_skill:
             if current is None or spec.due(step, episode_start):
-                return self.agent.sample_skill(1, generator=generator)[0]
+                return self.model.sample_skill(1, generator=generator)[0]
             return current
         if c.skill == "regressed" and spec.has_skill and step >= c.regress_after and spec.due(step, episode_start):
-            ddpg = self.agent.ddpg
+            ddpg = self.model.core.config
             batch = ReplayNeeds(c.regress_samples, ddpg.discount, nstep=ddpg.nstep).sample(self.replay)
-            task = self.agent.regress_skill(batch.obs, batch.reward)  # a unit vector, or 0: no direction
+            task = self.model.regress_skill(batch.obs, batch.reward)  # a unit vector, or 0: no direction
             # Rewards with no direction (all zero so far, as sparse tasks start) keep the skill;
             # torch.where, not an if: no host sync. Evaluations use the regressed skill.
             self.skill = torch.where(task.norm() > 0.5, task, self.skill)
         return self.skill
 
-    def replay_needs(self) -> ReplayNeeds:
+    @classmethod
+    def needs_of(cls, model) -> ReplayNeeds:
         # The core's own batches: a method that asks for more rows in pre-training (BeCL's fresh
         # batch per contrastive step) trains only its core here.
-        ddpg = self.agent.ddpg
+        ddpg = model.core.config
         return ReplayNeeds(ddpg.batch_size, ddpg.discount, nstep=ddpg.nstep)
 
     def update(self, batch: Batch) -> dict[str, torch.Tensor]:
         metrics: dict[str, torch.Tensor] = {}
-        self.agent.core.update(batch, batch.reward, metrics, self.agent.net_runner)
+        self.model.core.update(batch, batch.reward, metrics, self.net_runner)
         return metrics
 
     def training_state(self) -> dict:
-        core = self.agent.core
+        core = self.model.core
         return {"core": core.state_dict(), "optimizers": {k: o.state_dict() for k, o in core.optimizers().items()},
                 "skill": None if self.skill is None else self.skill.cpu()}
 
     def load_training_state(self, state: dict) -> None:
-        core = self.agent.core
+        core = self.model.core
         core.load_state_dict(state["core"])
         for k, o in core.optimizers().items():
             o.load_state_dict(state["optimizers"][k])
         if state.get("skill") is not None:
-            self.skill = state["skill"].to(self.agent.device)
+            self.skill = state["skill"].to(self.model.device)

@@ -1,7 +1,7 @@
 """The zero-shot protocols (docs/methods.md, "Protocols"; §8).
 
 * :class:`RewardInference` (``reward_inference``; FB, DVFB): collect reward-labelled steps in the
-  task with prior skills, let the agent infer the task's skill from a sample of them
+  task with prior skills, let the model infer the task's skill from a sample of them
   (:meth:`~dvfb.agents.base.Agent.infer_skill`); also from reward-function samples or a goal;
 * :class:`FeatureRegression` (``feature_regression``; the successor features): the same data with
   skills on the pre-training schedule, the skill from a regression of the rewards on the features;
@@ -21,9 +21,11 @@ import numpy as np
 import torch
 
 from dvfb.config import param
+from dvfb.data import ReplayBuffer
 from dvfb.errors import ConfigError
 from dvfb.protocols.base import ZeroShotProtocol, register_zero_shot
-from dvfb.data import ReplayBuffer
+from dvfb.training.observers import EpisodeReturns, ProgressCount, ReplayWriter
+from dvfb.training.rollout import Lane, Policy, rollout
 
 SELECTION_CANDIDATES = ("completed", "authors")
 
@@ -70,51 +72,47 @@ class SkillSelectionConfig:
     eval_episodes: int = param(50, "Mean-action evaluation episodes with the selected skill.", at_least=1)
 
 
-def collect_inference_data(agent, env, steps: int, random_action_steps: int, rng: np.random.Generator,
+def collect_inference_data(model, env, steps: int, random_action_steps: int, rng: np.random.Generator,
                            max_episode_length: int = 1000, progress=None, skill_schedule: bool = False
                            ) -> ReplayBuffer:
-    """``steps`` reward-labelled steps in the task (§8.1).
+    """``steps`` reward-labelled steps in the task (§8.1), a rollout of the one loop.
 
     A new skill from the method's prior at every step (or, with ``skill_schedule``, when the
-    method's pre-training rule says so: ``agent.skill.due``); uniform actions for the first
-    ``random_action_steps`` steps, then rollout samples of ``pi(s, skill)``.
+    method's pre-training rule says so: ``model.skill.due``); uniform actions for the first
+    ``random_action_steps`` steps, then rollout samples of ``pi(s, skill)``. The buffer holds the
+    episodes as they were collected (their boundaries, the environment's discounts, no skill).
     """
     obs_dim = env.observation_space.shape[0]
     action_dim = env.action_space.shape[0]
     buffer = ReplayBuffer(max(steps, max_episode_length), obs_dim, action_dim, z_dim=0,
-                          max_episode_length=max_episode_length, device=agent.device)
-    done = True
-    obs = None
-    for step in range(steps):
-        episode_start = done
-        if done:
-            obs, _ = env.reset()
-            buffer.start_episode(obs)
-        if not skill_schedule or agent.skill.due(step, episode_start):
-            z = agent.sample_skill(1)[0]
-        if step < random_action_steps:
-            action = rng.uniform(-1.0, 1.0, action_dim).astype(np.float32)
-        else:
-            action = agent.act(obs, z, explore=True)
-        obs, reward, terminated, truncated, _ = env.step(action)
-        buffer.add(action, reward, 0.0 if terminated else 1.0, obs)
-        done = terminated or truncated
-        if progress is not None:
-            progress.update(1)
+                          max_episode_length=max_episode_length, device=model.device)
+
+    def skill_rule(step: int, episode_start: bool, current):
+        if not skill_schedule or model.skill.due(step, episode_start):
+            return model.sample_skill(1)[0]
+        return current
+
+    lanes = [Lane(env, rng)]
+    policy = Policy(lambda obs, skills: model.act(obs, skills, explore=True), [skill_rule],
+                    lambda step: step < random_action_steps)
+    observers = [ReplayWriter(lanes, [buffer], store_skill=False)]
+    if progress is not None:
+        observers.append(ProgressCount(progress, per="transition"))
+    rollout(lanes, policy, observers, stop=steps)
     return buffer
 
 
-def infer_task_vector(agent, buffer: ReplayBuffer, config: InferenceConfig) -> tuple[torch.Tensor, dict]:
-    """Draw the inference samples from ``buffer`` and let the agent infer the task's skill (§8.2)."""
+def infer_task_vector(model, buffer: ReplayBuffer, config: InferenceConfig) -> tuple[torch.Tensor, dict]:
+    """Draw the inference samples from ``buffer`` and let the model infer the task's skill (§8.2)."""
     data = buffer.transitions()
     n = data.obs.shape[0]
     if n == 0:
         raise ConfigError("no reward-labelled transitions to infer z from (inference.steps is 0?)")
     if config.with_replacement:
-        index = torch.randint(0, n, (config.samples,), device=data.obs.device, generator=agent.generator)
+        index = torch.randint(0, n, (config.samples,), device=data.obs.device, generator=model.generator)
     else:
-        index = torch.randperm(n, device=data.obs.device, generator=agent.generator)[: config.samples]
-    return agent.infer_skill(data.obs[index], data.next_obs[index], data.reward[index], config)
+        index = torch.randperm(n, device=data.obs.device, generator=model.generator)[: config.samples]
+    return model.infer_skill(data.obs[index], data.next_obs[index], data.reward[index], config)
 
 
 def check_finite(name: str, values: torch.Tensor | np.ndarray) -> None:
@@ -136,22 +134,22 @@ class RewardInference(ZeroShotProtocol):
     def task_steps(self, source: str = "rewards") -> int:
         return self.config.steps if source == "rewards" else 0
 
-    def task_skill(self, agent, env, rng, episode_length, *, progress=None, keep_data=False):
-        buffer = collect_inference_data(agent, env, self.config.steps, self.config.random_action_steps, rng,
+    def task_skill(self, model, env, rng, episode_length, *, progress=None, keep_data=False):
+        buffer = collect_inference_data(model, env, self.config.steps, self.config.random_action_steps, rng,
                                         episode_length, progress=progress, skill_schedule=self.skill_schedule)
-        skill, info = infer_task_vector(agent, buffer, self.config)
+        skill, info = infer_task_vector(model, buffer, self.config)
         if keep_data:
             info["buffer"] = buffer
         return skill, info
 
-    def skill_from_samples(self, agent, obs, next_obs, reward):
+    def skill_from_samples(self, model, obs, next_obs, reward):
         check_finite("the reward function's output", reward)
-        index = torch.randperm(reward.shape[0], device=reward.device, generator=agent.generator)[: self.config.samples]
-        return agent.infer_skill(obs[index], next_obs[index], reward[index], self.config)
+        index = torch.randperm(reward.shape[0], device=reward.device, generator=model.generator)[: self.config.samples]
+        return model.infer_skill(obs[index], next_obs[index], reward[index], self.config)
 
-    def skill_from_goal(self, agent, goal):
+    def skill_from_goal(self, model, goal):
         check_finite("--goal", goal)
-        return agent.skill_from_goal(torch.as_tensor(np.asarray(goal), dtype=torch.float32)), {
+        return model.skill_from_goal(torch.as_tensor(np.asarray(goal), dtype=torch.float32)), {
             "goal": np.asarray(goal, dtype=float).tolist()}
 
 
@@ -173,7 +171,7 @@ class RegressionConfig:
 @register_zero_shot
 class FeatureRegression(RewardInference):
     """Successor features (paper App. C; docs/methods.md, "Successor features"): reward-labelled
-    steps with prior skills redrawn on the pre-training schedule, then the agent's least-squares
+    steps with prior skills redrawn on the pre-training schedule, then the model's least-squares
     regression of the rewards on its features gives ``z_r`` (:meth:`~dvfb.agents.base.Agent.infer_skill`)."""
 
     name = "feature_regression"
@@ -189,7 +187,7 @@ class SinglePolicy(ZeroShotProtocol):
     name = "single_policy"
     config_cls = PolicyEvaluationConfig
 
-    def task_skill(self, agent, env, rng, episode_length, *, progress=None, keep_data=False):
+    def task_skill(self, model, env, rng, episode_length, *, progress=None, keep_data=False):
         return None, {"strategy": "single_policy"}
 
 
@@ -213,30 +211,25 @@ class SkillSelection(ZeroShotProtocol):
     def task_steps(self, source: str = "rewards") -> int:
         return self.config.steps
 
-    def task_skill(self, agent, env, rng, episode_length, *, progress=None, keep_data=False):
+    def task_skill(self, model, env, rng, episode_length, *, progress=None, keep_data=False):
         # The run's own stream for the candidate skills, derived from its numpy generator.
-        generator = torch.Generator(device=agent.device).manual_seed(int(rng.integers(2**62)))
+        generator = torch.Generator(device=model.device).manual_seed(int(rng.integers(2**62)))
         steps = self.config.steps
-        candidates: list[dict] = []
-        skills: list[torch.Tensor] = []
-        step = 0
-        while step < steps:
-            obs, _ = env.reset()
-            skill = agent.sample_skill(1, generator=generator)[0]
-            total, done = 0.0, False
-            while not done and step < steps:
-                obs, reward, terminated, truncated, _ = env.step(agent.act(obs, skill, explore=False))
-                total += float(reward)
-                step += 1
-                done = terminated or truncated
-                if progress is not None:
-                    progress.update(1)
-            # The authors' driver records an episode when the next one starts, so the episode that
-            # ends at the last step is never compared (docs/methods.md, "Protocols").
-            recorded = done and (self.config.candidates == "completed" or step < steps)
-            if recorded:
-                candidates.append({"skill": skill.cpu().tolist(), "return": total})
-                skills.append(skill)
+
+        def new_skill_per_episode(step: int, episode_start: bool, current):
+            return model.sample_skill(1, generator=generator)[0] if episode_start else current
+
+        lanes = [Lane(env)]
+        # The authors' driver records an episode when the next one starts, so the episode that
+        # ends at the last step is never compared (docs/methods.md, "Protocols").
+        completed = self.config.candidates == "completed"
+        episodes = EpisodeReturns(lanes, keep_skills=True, accept=lambda step: completed or step < steps)
+        observers = [episodes] + ([ProgressCount(progress, per="transition")] if progress is not None else [])
+        policy = Policy(lambda obs, skills: model.act(obs, skills, explore=False), [new_skill_per_episode])
+        rollout(lanes, policy, observers, stop=steps)
+        skills = episodes.skills[0]
+        candidates = [{"skill": skill.cpu().tolist(), "return": float(total)}
+                      for skill, total in zip(skills, episodes.returns[0])]
         chosen = best_candidate([c["return"] for c in candidates])
         info = {"protocol": self.name, "candidates": candidates, "chosen": chosen,
                 "chosen_return": candidates[chosen]["return"], "selection_steps": steps}

@@ -1,10 +1,11 @@
-"""Run directories, metrics, results and checkpoints.
+"""The runs layer: the one place that knows the run directory (docs/architecture.md, "Run directories").
 
-Every run (pre-training, fine-tuning, zero-shot evaluation, ...) owns one directory::
+Every run (pre-training, fine-tuning) owns one directory; the kinds of run, their paths and records
+are :mod:`~dvfb.runs.layout`'s. What every run directory has::
 
     <run>/
-      config.json              the full resolved typed config (dvfb.config.save_json)
-      meta.json                config class, dvfb version, creation time, command line
+      config.json              the full resolved typed config (dvfb.runs.run_config)
+      meta.json                kind of run, config class, dvfb version, creation time, command line
       metrics/<prefix>.jsonl   one JSON object per MetricsLogger.log call: {"step": 1000, "x": 0.5}
       tb/                      TensorBoard event files, scalar tags "<prefix>/<name>"
       checkpoints/<name>.pt    resume checkpoints (torch.save of a state dict)
@@ -24,14 +25,26 @@ only tensors, numbers, strings, ``None`` and lists/tuples/dicts of these (``torc
 and ``numpy.random.Generator.bit_generator.state`` qualify; legacy ``np.random.get_state()``
 does not).
 
-The rooms: :mod:`~dvfb.runs.files` (atomic writes, JSON), :mod:`~dvfb.runs.directory` (the run
-directory and its lock), :mod:`~dvfb.runs.metrics`, :mod:`~dvfb.runs.checkpoints`. Every public
-name is importable from ``dvfb.runs``.
+The rooms: :mod:`~dvfb.runs.directory` (the run directory and its lock),
+:mod:`~dvfb.runs.metrics`, :mod:`~dvfb.runs.checkpoints` (their public names are importable from
+``dvfb.runs``, with the atomic files of :mod:`dvfb.files`); :mod:`~dvfb.runs.layout` (the kinds of
+run, their paths, records and discovery), :mod:`~dvfb.runs.records`, :mod:`~dvfb.runs.run_config`,
+:mod:`~dvfb.runs.presets`, :mod:`~dvfb.runs.snapshots` and :mod:`~dvfb.runs.migrations` (imported
+by name: they load the agents' registry).
 """
 
-from dvfb.runs.checkpoints import (  # noqa: F401
-    CHECKPOINT_SUFFIX, LATEST_POINTER, PRETRAIN_RESUME_KIND, latest_checkpoint, list_snapshots, load_checkpoint,
-    load_snapshot, remove_orphaned_checkpoints, save_checkpoint, save_snapshot)
-from dvfb.runs.directory import CONFIG_FILE, LOCK_FILE, META_FILE, RunDir, RunLock, check_writable  # noqa: F401
 from dvfb.files import read_json, write_json_atomic  # noqa: F401
+from dvfb.runs.checkpoints import (  # noqa: F401
+    CHECKPOINT_SUFFIX,
+    LATEST_POINTER,
+    PRETRAIN_RESUME_KIND,
+    latest_checkpoint,
+    list_snapshots,
+    load_checkpoint,
+    load_snapshot,
+    remove_orphaned_checkpoints,
+    save_checkpoint,
+    save_snapshot,
+)
+from dvfb.runs.directory import CONFIG_FILE, LOCK_FILE, META_FILE, RunDir, RunLock, check_writable  # noqa: F401
 from dvfb.runs.metrics import MetricsLogger, read_metrics  # noqa: F401

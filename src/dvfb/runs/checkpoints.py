@@ -12,9 +12,8 @@ from typing import Any
 import torch
 
 from dvfb.errors import CheckpointError
-from dvfb.runs.directory import _NAME_PATTERN, RunDir, _as_run_dir, _check_name
 from dvfb.files import _atomic_write, _remove_stale_temp_files
-
+from dvfb.runs.directory import _NAME_PATTERN, RunDir, _as_run_dir, _check_name
 
 LATEST_POINTER = "latest"
 CHECKPOINT_SUFFIX = ".pt"

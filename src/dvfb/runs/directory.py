@@ -21,7 +21,6 @@ from dvfb.config import load_json, save_json, to_dict
 from dvfb.errors import ConfigError, RunDirError
 from dvfb.files import _TEMP_MARK, _atomic_write, read_json, write_json_atomic
 
-
 T = TypeVar("T")
 
 CONFIG_FILE = "config.json"

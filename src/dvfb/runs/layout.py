@@ -33,7 +33,7 @@ from typing import Any
 
 from dvfb.errors import ConfigError, RunDirError
 from dvfb.files import read_json
-from dvfb.runs.checkpoints import list_snapshots
+from dvfb.runs.checkpoints import latest_checkpoint, list_snapshots, load_checkpoint
 from dvfb.runs.directory import CONFIG_FILE, META_FILE, RunDir
 from dvfb.runs.migrations import kind_from_config
 from dvfb.runs.records import Curve, FinetuneSummary, PretrainSummary, ZeroShotResult
@@ -129,6 +129,15 @@ class PretrainRun(RunDir):
 
     def snapshot_path(self, frames: int) -> Path:
         return self.snapshots_dir / f"{snapshot_name(frames)}.pt"
+
+    # Resume checkpoints ----------------------------------------------------------------------------
+    def resume_state(self, mmap: bool = False) -> dict | None:
+        """The latest resume checkpoint of the pre-training (the final one of a finished run: its
+        whole replay), None when the run has none (a shipped snapshot); ``mmap`` maps its tensors
+        from the file instead of reading them. A corrupt checkpoint is a CheckpointError."""
+        if latest_checkpoint(self) is None:
+            return None
+        return load_checkpoint(self, None, map_location="cpu", mmap=mmap)
 
     # Zero-shot results ---------------------------------------------------------------------------
     @property

@@ -9,10 +9,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import IO, Any
 
-
 from dvfb.errors import RunDirError
-from dvfb.runs.directory import RunDir, _as_run_dir, _check_name
 from dvfb.files import _atomic_write
+from dvfb.runs.directory import RunDir, _as_run_dir, _check_name
 
 
 def _scalar(name: str, value: Any) -> float:

@@ -18,6 +18,7 @@ from dvfb.config import merge, replace
 from dvfb.errors import ConfigError
 from dvfb.runs.run_config import DEFAULT_AGENT, PRESETS, PretrainConfig, run_config_class
 
+
 def preset_config(preset: str, agent: str = DEFAULT_AGENT, **top_level) -> PretrainConfig:
     """The config of a preset for a method, with top-level fields (domain, frames, seed, ...) applied."""
     if preset not in PRESETS:

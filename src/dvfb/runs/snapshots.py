@@ -4,10 +4,9 @@ shape; missing or corrupt files). Older snapshot formats are read through :mod:`
 
 from __future__ import annotations
 
-
 import torch
 
-from dvfb.agents import Agent, make_agent
+from dvfb.agents import Agent, Model, make_model
 from dvfb.config import to_dict
 from dvfb.errors import CheckpointError, ConfigError
 from dvfb.execution import resolve_device
@@ -60,9 +59,10 @@ def check_snapshot(state: dict, config: PretrainConfig, where: str) -> None:
                               + "; ".join(diffs[:4]) + (" ..." if len(diffs) > 4 else "") + ")")
 
 
-def load_pretrained_agent(run: PretrainRun, snapshot: int | None = None,
-                          device: str | torch.device | None = None) -> tuple[Agent, int]:
-    """Rebuild the run's agent from a snapshot (the newest by default), through the registry.
+def load_model(run: PretrainRun, snapshot: int | None = None,
+               device: str | torch.device | None = None) -> tuple[Model, int]:
+    """The run's model (:class:`~dvfb.agents.base.Model`: no optimiser) from a snapshot (the newest
+    by default), through the registry; and the snapshot's frames.
 
     Raises :class:`CheckpointError` if the run has no snapshot, the snapshot is unreadable, or it
     was written by another method, for another domain or shape, or with another configuration
@@ -81,16 +81,15 @@ def load_pretrained_agent(run: PretrainRun, snapshot: int | None = None,
     where = f"snapshot {run.snapshot_path(snapshot)}"
     check_snapshot(state, config, where)
     device = device if device is not None else resolve_device(config.device)
-    return agent_from_snapshot(state, config, device, where), snapshot
+    return model_from_snapshot(state, config, device, where), snapshot
 
 
-def agent_from_snapshot(state: dict, config: PretrainConfig, device: str | torch.device, where: str) -> Agent:
-    """Build the snapshot's agent (registry) and load its pre-trained modules; a module of another
-    shape is an error that names both shapes."""
-    agent = make_agent(config.agent, state["obs_dim"], state["action_dim"], config, device)
+def model_from_snapshot(state: dict, config: PretrainConfig, device: str | torch.device, where: str) -> Model:
+    """Build the snapshot's model (registry) and load its modules; a module of another shape is an
+    error that names both shapes."""
+    model = make_model(config.agent, state["obs_dim"], state["action_dim"], config, device)
     try:
-        for key, module in agent.pretrained_modules().items():
-            module.load_state_dict(state["modules"][key])
+        model.load_snapshot(state["modules"])
     except (KeyError, RuntimeError) as exc:
         raise CheckpointError(f"{where} does not fit the configured networks: {exc}") from exc
-    return agent
+    return model

@@ -8,7 +8,11 @@ after preemption, requeue or a killed submitter (README "Sweeps", docs/sweeps.md
   command that runs or resumes it, and its state record and log;
 * :mod:`dvfb.sweep.executors` -- the ``debug`` (in-process), ``local`` (worker pool) and ``slurm``
   (submitit job arrays) executors;
-* :mod:`dvfb.sweep.status` -- the table of ``dvfb sweep status``.
+* :mod:`dvfb.sweep.runner` -- starting or continuing a sweep, its reports, and the table of
+  ``dvfb sweep status``.
+
+The command lines are :mod:`dvfb.cli.sweep`'s. A sweep reads its runs through :mod:`dvfb.runs` and
+runs ``dvfb`` commands; it imports no workflow.
 
 A sweep directory holds::
 

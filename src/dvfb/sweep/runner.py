@@ -10,6 +10,9 @@ import socket
 import time
 from pathlib import Path
 
+from dvfb.analysis.common import AnalysisError
+from dvfb.analysis.report import make_report
+from dvfb.config import format_value
 from dvfb.errors import ConfigError, DvfbError
 from dvfb.runs import LOCK_FILE, RunLock, read_json, read_metrics, write_json_atomic
 from dvfb.sweep import spec
@@ -92,7 +95,7 @@ def report_groups(config: SweepConfig) -> dict[str, list[Cell]]:
     groups = {}
     for combination in itertools.product(*(config.overrides[k] for k in axes)):
         chosen = dict(zip(axes, combination))
-        name = "_".join(f"{k}={spec.format_value(v)}" for k, v in chosen.items())
+        name = "_".join(f"{k}={format_value(v)}" for k, v in chosen.items())
         groups[name] = [c for c in cells
                         if all(json.dumps(dict(c.values)[k]) == json.dumps(v) for k, v in chosen.items() if k in c.axes)]
     return groups
@@ -101,8 +104,6 @@ def report_groups(config: SweepConfig) -> dict[str, list[Cell]]:
 def write_reports(sweep: SweepDir, config: SweepConfig) -> list[Path]:
     """``dvfb report`` over the seeds of each group (:func:`report_groups`) into SWEEP/report/.
     The report is derived from the runs, so it is rewritten on every run of the sweep."""
-    from dvfb.analysis.common import AnalysisError
-    from dvfb.analysis.report import make_report
 
     written = []
     for name, cells in report_groups(config).items():

@@ -18,14 +18,18 @@ import itertools
 import json
 import re
 import tomllib
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from dvfb.config import from_dict, merge, param, to_dict
+from dvfb import envs
+from dvfb.agents import agent_names, get_spec
+from dvfb.config import (canonical_key, field_type, flag_name, format_value, from_dict, is_list_type, merge, param,
+                         parse_text, to_dict)
 from dvfb.errors import ConfigError
+from dvfb.runs import read_json
+from dvfb.runs.presets import preset_config
+from dvfb.runs.run_config import run_config_class
 
 PHASES = ("pretrain", "zeroshot", "finetune")
 EXECUTORS = ("local", "slurm", "debug")
@@ -123,74 +127,6 @@ class Cell:
 # option keys and values
 
 
-def canonical_key(key: str) -> str:
-    """``fb.hidden-dim`` -> ``fb.hidden_dim`` (config field names never contain dashes)."""
-    return key.strip().lstrip("-").replace("-", "_")
-
-
-def flag_of(key: str) -> str:
-    """The ``dvfb pretrain`` flag of a dotted field name: sections keep their underscores
-    (``--icm_apt.rep-dim``), the field name gets dashes."""
-    *sections, name = key.split(".")
-    return "--" + ".".join([*sections, name.replace("_", "-")])
-
-
-def field_type(cls: type, key: str) -> Any | None:
-    """The declared type of the dotted field ``key`` of the config class ``cls``; None if absent."""
-    tp: Any = cls
-    for part in key.split("."):
-        if not (isinstance(tp, type) and dataclasses.is_dataclass(tp)):
-            return None
-        hints = typing.get_type_hints(tp)
-        if part not in hints or part not in {f.name for f in dataclasses.fields(tp)}:
-            return None
-        tp = hints[part]
-    return tp
-
-
-def _strip_optional(tp: Any) -> tuple[Any, bool]:
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        return [a for a in typing.get_args(tp) if a is not type(None)][0], True
-    return tp, False
-
-
-def is_list_type(tp: Any) -> bool:
-    return typing.get_origin(_strip_optional(tp)[0]) in (list, tuple)
-
-
-def parse_text(key: str, tp: Any, text: str) -> Any:
-    """A command-line value of the option ``key`` as its declared type (as ``dvfb pretrain`` parses it)."""
-    base, optional = _strip_optional(tp)
-    text = text.strip()
-    if optional and text.lower() in ("none", "null"):
-        return None
-    if typing.get_origin(base) in (list, tuple):
-        inner = typing.get_args(base)[0]
-        return [parse_text(key, inner, item) for item in text.split(",") if item.strip()]
-    try:
-        if base is bool:
-            lowered = text.lower()
-            if lowered not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
-                raise ValueError(text)
-            return lowered in ("1", "true", "yes", "on")
-        if base in (int, float, str):
-            return base(text)
-    except ValueError:
-        raise ConfigError(f"{flag_of(key)}: {text!r} is not a valid {getattr(base, '__name__', base)}") from None
-    return text
-
-
-def format_value(value: Any) -> str:
-    """The command-line text of a typed value; :func:`parse_text` reads it back exactly."""
-    if value is None:
-        return "none"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (list, tuple)):
-        return ",".join(format_value(v) for v in value)
-    return repr(value) if isinstance(value, float) else str(value)
-
-
 def _name_part(value: Any) -> str:
     # One safe path component: keep what shells and file systems take as is.
     return re.sub(r"[^A-Za-z0-9_.+\-]", "-", format_value(value).replace(",", "-"))
@@ -201,8 +137,6 @@ def _name_part(value: Any) -> str:
 
 
 def _run_config_class(agent: str) -> type:
-    from dvfb.agents import agent_names
-    from dvfb.runs.run_config import run_config_class
 
     if agent not in agent_names():
         raise ConfigError(f"unknown agent {agent!r}; choose from {', '.join(agent_names())}")
@@ -216,7 +150,6 @@ def normalise_overrides(config: SweepConfig, raw: dict[str, Any], from_text: boo
     where a list of lists is) or from the command line (``from_text``: comma-separated text, an
     axis unless the option is list-typed).
     """
-    from dvfb.agents import get_spec
 
     classes = [_run_config_class(agent) for agent in config.agents]
     task_fields = {get_spec(agent).task_field for agent in config.agents} - {None}
@@ -224,13 +157,13 @@ def normalise_overrides(config: SweepConfig, raw: dict[str, Any], from_text: boo
     for given_key, value in raw.items():
         key = canonical_key(given_key)
         if key in task_fields:
-            raise ConfigError(f"{flag_of(key)} is set by the sweep itself: a supervised cell per zero-shot task")
+            raise ConfigError(f"{flag_name(key)} is set by the sweep itself: a supervised cell per zero-shot task")
         if key.split(".")[0] in CELL_FIELDS:
-            raise ConfigError(f"{flag_of(key)} is set by the sweep itself; use its agents, domains, seeds, "
+            raise ConfigError(f"{flag_name(key)} is set by the sweep itself; use its agents, domains, seeds, "
                               "preset or torch_threads")
         tp = next((t for t in (field_type(c, key) for c in classes) if t is not None), None)
         if tp is None:
-            raise ConfigError(f"no method of the sweep ({', '.join(config.agents)}) has the option {flag_of(key)}")
+            raise ConfigError(f"no method of the sweep ({', '.join(config.agents)}) has the option {flag_name(key)}")
         if from_text:
             texts = [str(value)] if is_list_type(tp) else str(value).split(",")
             values = [parse_text(key, tp, text) for text in texts]
@@ -239,15 +172,14 @@ def normalise_overrides(config: SweepConfig, raw: dict[str, Any], from_text: boo
         else:
             values = list(value) if isinstance(value, list) else [value]
         if not values:
-            raise ConfigError(f"{flag_of(key)} has no value")
+            raise ConfigError(f"{flag_name(key)} has no value")
         if len({json.dumps(v) for v in values}) != len(values):
-            raise ConfigError(f"{flag_of(key)} lists a value twice: {values}")
+            raise ConfigError(f"{flag_name(key)} lists a value twice: {values}")
         out[key] = values
     return out
 
 
 def _tasks(config: SweepConfig, domain: str, requested: list[str]) -> list[str]:
-    from dvfb import envs
 
     if requested == ["all"]:
         return list(envs.tasks_of_domain(domain))
@@ -271,7 +203,6 @@ def finetune_tasks(config: SweepConfig, cell: Cell) -> list[str]:
 
 def check(config: SweepConfig) -> None:
     """Everything about a sweep that can be checked before anything runs (bad input: ConfigError)."""
-    from dvfb import envs
 
     for name, values in (("agents", config.agents), ("domains", config.domains), ("seeds", config.seeds)):
         if not values:
@@ -309,7 +240,6 @@ def check(config: SweepConfig) -> None:
 
 def cells(config: SweepConfig) -> list[Cell]:
     """The grid, in the order agents, domains, swept values, seeds."""
-    from dvfb.agents import get_spec
 
     out = []
     for agent in config.agents:
@@ -359,7 +289,6 @@ def group_run_template(cell: Cell) -> str:
 
 def cell_task(cell: Cell) -> str | None:
     """The task a cell's method learns from (the supervised reference), or None."""
-    from dvfb.agents import get_spec
 
     field_name = get_spec(cell.agent).task_field
     return dict(cell.values).get(field_name) if field_name is not None else None
@@ -367,7 +296,6 @@ def cell_task(cell: Cell) -> str | None:
 
 def cell_config(config: SweepConfig, cell: Cell):
     """The cell's full pre-training config (what ``dvfb pretrain`` would resolve)."""
-    from dvfb.runs.presets import preset_config
 
     base = preset_config(config.preset, cell.agent, domain=cell.domain, seed=cell.seed)
     try:
@@ -380,7 +308,7 @@ def pretrain_flags(cell: Cell) -> list[str]:
     """The override flags of the cell for ``dvfb pretrain``."""
     flags: list[str] = []
     for key, value in cell.values:
-        flags += [flag_of(key), format_value(value)]
+        flags += [flag_name(key), format_value(value)]
     return flags
 
 
@@ -435,7 +363,6 @@ def same_grid(a: SweepConfig, b: SweepConfig) -> list[str]:
 
 def load_stored(path: Path) -> SweepConfig:
     """The sweep saved in a sweep directory."""
-    from dvfb.runs import read_json
 
     data = read_json(path / SWEEP_FILE, error=ConfigError)
     try:

@@ -28,8 +28,8 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 import threading
+import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass

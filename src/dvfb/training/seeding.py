@@ -12,7 +12,6 @@ import numpy as np
 import torch
 
 
-
 def seed_everything(seed: int) -> np.random.Generator:
     """Seed torch and Python; return the numpy Generator the workflow draws uniform actions from."""
     torch.manual_seed(seed)

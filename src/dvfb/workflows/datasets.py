@@ -12,8 +12,9 @@ from dvfb import envs
 from dvfb.agents import get_spec
 from dvfb.data.buffer import PHYSICS_COLUMN
 from dvfb.data.datasets import DatasetInfo, ProgressFactory, check_output_dir, physics_slice, write_dataset
-from dvfb.errors import ConfigError
-from dvfb.runs import PRETRAIN_RESUME_KIND, RunDir, load_checkpoint, read_json
+from dvfb.errors import CheckpointError, ConfigError
+from dvfb.runs import PRETRAIN_RESUME_KIND
+from dvfb.runs.layout import PretrainRun
 
 
 def default_export_dir(run: str | Path) -> Path:
@@ -30,22 +31,24 @@ def export_run(run: str | Path, out: str | Path | None = None,
     exist or be empty. Every check is made before anything is written; a failure while writing
     removes what was written.
     """
-    run = RunDir.open(run)
-    config = read_json(run.config_path)
+    run = PretrainRun.open(run)
+    config = run.config
     out = Path(out) if out is not None else default_export_dir(run.path)
     no_physics = (f"{run.path} was pre-trained without --replay.record-physics, so its replay holds no physics "
                   "states to relabel from; pre-train with --replay.record-physics true")
-    if not (config.get("replay") or {}).get("record_physics"):
+    if not config.replay.record_physics:
         raise ConfigError(no_physics)
     check_output_dir(out)
-    state = load_checkpoint(run, None, mmap=True)
+    state = run.resume_state(mmap=True)
+    if state is None:
+        raise CheckpointError(f"{run.path} has no resume checkpoint to export its replay from")
     if state.get("kind") != PRETRAIN_RESUME_KIND:
         raise ConfigError(f"{run.path}: the latest checkpoint is not a pre-training checkpoint")
     replay = state["replay"]
     physics = physics_slice(replay.get("columns") or {})
     if physics is None:
         raise ConfigError(no_physics)
-    domain, agent = config["domain"], config["agent"]
+    domain, agent = config.domain, config.agent
     task = get_spec(agent).task_of(config) or envs.pretrain_task(domain)
     env = envs.make(task, seed=0).unwrapped
     layout = [list(part) for part in env.physics_layout]
@@ -82,7 +85,7 @@ def export_run(run: str | Path, out: str | Path | None = None,
 
     info = DatasetInfo(
         domain=domain, task=task, pretrain_task=task, source_run=str(run.path.resolve()), agent=agent,
-        seed=int(config.get("seed", 0)), frames=int(state["step"]), obs_dim=obs_dim, action_dim=action_dim,
+        seed=config.seed, frames=int(state["step"]), obs_dim=obs_dim, action_dim=action_dim,
         physics_width=env.physics_width, physics_layout=layout, episode_length=envs.TASKS[task].episode_length,
         episodes=finished, transitions=int(lengths[:finished].sum()), files=[])
     return write_dataset(out, info, episodes(), progress, "dataset export")

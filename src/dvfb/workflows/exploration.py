@@ -1,7 +1,7 @@
 """Exploration analysis (paper Fig. 2): where do the pre-trained skills go, and how much do they cover?
 
 ``dvfb analyze-exploration RUN`` draws K skills ``z ~ p(z)`` (docs/methods.md §5.1) from the
-pre-trained agent, runs each R times for S steps (default: one episode) in the domain's reward-free
+pre-trained model, runs each R times for S steps (default: one episode) in the domain's reward-free
 pre-training environment, and records physical positions at every step:
 
 ===================  ==========================================  ===========  ==================
@@ -36,8 +36,15 @@ from pathlib import Path
 
 import numpy as np
 
+from dvfb import envs
 from dvfb.analysis.common import AnalysisError, json_safe
 from dvfb.analysis.statistics import coverage
+from dvfb.runs import check_writable, write_json_atomic
+from dvfb.runs.snapshots import load_model
+from dvfb.training.evaluation import run_episode
+from dvfb.training.rollout import Observer
+from dvfb.training.seeding import run_generator, seed_everything
+from dvfb.workflows.resources import open_run
 
 ACTION_MODES = ("rollout", "mean")
 
@@ -80,15 +87,24 @@ COORDINATES: dict[str, Coordinates] = {
 }
 
 
+class Positions(Observer):
+    """The recorded coordinates of every state of an episode: row 0 at the reset, row t + 1 after
+    step t."""
+
+    def __init__(self, rows: np.ndarray, coords: Coordinates, env):
+        self.rows, self.coords, self.env = rows, coords, env
+
+    def episode_started(self, lane: int, obs) -> None:
+        self.rows[0] = self.coords.read(self.env)
+
+    def transition(self, lane: int, step: int, action, reward, discount, next_obs, info) -> None:
+        self.rows[step + 1] = self.coords.read(self.env)
+
+
 def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int = 3, steps: int | None = None,
                         actions: str = "rollout", cell_size: float | None = None, snapshot: int | None = None,
                         seed: int | None = None, overwrite: bool = False, device: str | None = None) -> dict:
     """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary."""
-    from dvfb import envs
-    from dvfb.runs import check_writable, write_json_atomic
-    from dvfb.training.seeding import run_generator, seed_everything
-    from dvfb.runs.snapshots import load_pretrained_agent
-    from dvfb.workflows.resources import open_run
 
     if actions not in ACTION_MODES:
         raise AnalysisError(f"--actions must be one of {', '.join(ACTION_MODES)}, got {actions!r}")
@@ -112,12 +128,12 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
     existing = [p for p in outputs if p.exists()]
     if existing and not overwrite:
         raise AnalysisError(f"{existing[0]} exists; pass --overwrite to replace it")
-    agent, snapshot = load_pretrained_agent(run, snapshot, device)
+    model, snapshot = load_model(run, snapshot, device)
     seed = config.seed if seed is None else seed
     seed_everything(seed)
-    agent.use_generator(run_generator(seed, agent.device))  # the analysis' own random stream
+    model.use_generator(run_generator(seed, model.device))  # the analysis' own random stream
     started = time.time()
-    zs = agent.sample_skill(skills)
+    zs = model.sample_skill(skills)
     if zs is None:
         raise AnalysisError(f"analyze-exploration compares skills; {config.agent!r} has a single policy")
     check_writable(out_dir)  # a read-only run fails now, not after the rollouts
@@ -126,13 +142,9 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
     positions = np.full((skills, repeats, steps + 1, len(coords.names)), np.nan)
     for k in range(skills):
         for r in range(repeats):
-            obs, _ = env.reset()
-            positions[k, r, 0] = coords.read(source)
-            for t in range(steps):
-                obs, _, terminated, truncated, _ = env.step(agent.act(obs, zs[k], explore=actions == "rollout"))
-                positions[k, r, t + 1] = coords.read(source)
-                if terminated:
-                    break  # never happens in DMC; the remaining steps would stay NaN
+            # An episode's end stops its record (never before ``steps`` in DMC; the rest would stay NaN).
+            run_episode(env, model.act, zs[k], actions == "rollout", [Positions(positions[k, r], coords, source)],
+                        max_steps=steps)
     recorded = positions[~np.isnan(positions).any(-1)]
     per_skill = [coverage(positions[k][~np.isnan(positions[k]).any(-1)], cell) for k in range(skills)]
     x = positions[..., 0]

@@ -6,11 +6,12 @@ from __future__ import annotations
 import torch
 
 from dvfb import envs
+from dvfb.agents import get_spec
 from dvfb.errors import ConfigError
-from dvfb.training.progress import notify
 from dvfb.execution import resolve_device
 from dvfb.runs.layout import PretrainRun
 from dvfb.runs.run_config import PretrainConfig
+from dvfb.training.progress import notify
 
 
 def setup_torch(config: PretrainConfig) -> torch.device:
@@ -84,7 +85,6 @@ def evaluation_tasks(config, requested: list[str]) -> list[str]:
     """The tasks a run is evaluated on: ``requested`` (``["all"]``: every task of its domain),
     each checked. A run that learned one task's reward (the supervised reference) is evaluated on
     that task only: its policy on another task would be read as a reference it is not."""
-    from dvfb.agents import get_spec
 
     trained = get_spec(config.agent).task_of(config)
     if requested == ["all"]:

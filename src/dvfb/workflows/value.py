@@ -30,9 +30,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dvfb import envs
 from dvfb.analysis.common import AnalysisError, json_safe
 from dvfb.analysis.statistics import binned_spearman, spearman
-
+from dvfb.config import to_dict
+from dvfb.nets import project_to_sphere
+from dvfb.runs import check_writable, write_json_atomic
+from dvfb.runs.snapshots import load_model
+from dvfb.training.evaluation import run_episode
+from dvfb.training.rollout import Observer
+from dvfb.training.seeding import run_generator, seed_everything
+from dvfb.workflows.resources import check_task_in_domain, open_run
+from dvfb.workflows.zeroshot import run_protocol
 
 # ---------------------------------------------------------------------------------------------
 # skills and rollouts
@@ -40,7 +49,6 @@ from dvfb.analysis.statistics import binned_spearman, spearman
 
 def skill_set(z_r: torch.Tensor, count: int, generator: torch.Generator) -> tuple[torch.Tensor, np.ndarray]:
     """``count`` skills: z_r first, then projected mixtures with prior draws; returns (z, lam)."""
-    from dvfb.nets import project_to_sphere
 
     if count < 1:
         raise AnalysisError("--skills must be at least 1")
@@ -54,20 +62,26 @@ def skill_set(z_r: torch.Tensor, count: int, generator: torch.Generator) -> tupl
     return torch.cat([z_r, mixed]), np.concatenate([[0.0], lam])
 
 
-def rollout(agent, env, z: torch.Tensor, max_steps: int | None, explore: bool = False) -> dict:
-    """One episode with a fixed skill; returns the return, s0, a0 and the number of steps."""
-    obs, _ = env.reset()
-    first_obs, first_action = obs.copy(), None
-    total, steps, done = 0.0, 0, False
-    while not done and (max_steps is None or steps < max_steps):
-        action = agent.act(obs, z, explore=explore)
-        if first_action is None:
-            first_action = action.copy()
-        obs, reward, terminated, truncated, _ = env.step(action)
-        total += reward
-        steps += 1
-        done = terminated or truncated
-    return {"return": total, "obs0": first_obs, "action0": first_action, "steps": steps}
+class FirstStep(Observer):
+    """The first observation and action of an episode, and its steps."""
+
+    obs0 = action0 = None
+    steps = 0
+
+    def episode_started(self, lane: int, obs: np.ndarray) -> None:
+        self.obs0, self.action0, self.steps = obs.copy(), None, 0
+
+    def transition(self, lane: int, step: int, action, reward, discount, next_obs, info) -> None:
+        if self.action0 is None:
+            self.action0 = np.array(action, copy=True)
+        self.steps += 1
+
+
+def skill_episode(model, env, z: torch.Tensor, max_steps: int | None, explore: bool = False) -> dict:
+    """One episode with a fixed skill (at most ``max_steps`` steps); its return, s0, a0 and steps."""
+    first = FirstStep()
+    lane = run_episode(env, model.act, z, explore, [first], max_steps)
+    return {"return": lane.state.episode_return, "obs0": first.obs0, "action0": first.action0, "steps": first.steps}
 
 
 def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes_per_skill: int = 2,
@@ -75,13 +89,6 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
                   snapshot: int | None = None, seed: int | None = None, overwrite: bool = False,
                   device: str | None = None) -> dict:
     """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary."""
-    from dvfb import envs
-    from dvfb.config import to_dict
-    from dvfb.runs import check_writable, write_json_atomic
-    from dvfb.training.seeding import run_generator, seed_everything
-    from dvfb.runs.snapshots import load_pretrained_agent
-    from dvfb.workflows.resources import check_task_in_domain, open_run
-    from dvfb.workflows.zeroshot import run_protocol
 
     if episodes_per_skill < 1:
         raise AnalysisError("--episodes-per-skill must be at least 1")
@@ -96,36 +103,36 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
     existing = [p for p in outputs if p.exists()]
     if existing and not overwrite:
         raise AnalysisError(f"{existing[0]} exists; pass --overwrite to replace it")
-    agent, snapshot = load_pretrained_agent(run, snapshot, device)
-    if not agent.learns_skill_value:
+    model, snapshot = load_model(run, snapshot, device)
+    if not model.learns_skill_value:
         raise AnalysisError(f"agent {config.agent!r} learns no skill value (analyze-value needs a method that does, "
                             "such as fb or dvfb)")
     check_writable(out_dir)  # a read-only run fails now, not after the rollouts
     seed = config.seed if seed is None else seed
     rng = seed_everything(seed)
-    agent.use_generator(run_generator(seed, agent.device))  # the analysis' own random stream
+    model.use_generator(run_generator(seed, model.device))  # the analysis' own random stream
     started = time.time()
     max_len = envs.TASKS[task].episode_length
 
     env = envs.make(task, seed=seed)
-    z_r, info = protocol.task_skill(agent, env, rng, max_len)
+    z_r, info = protocol.task_skill(model, env, rng, max_len)
     generator = torch.Generator().manual_seed(seed)
     zs, lam = skill_set(z_r, skills, generator)
 
     eval_env = envs.make(task, seed=seed)
     rows = []
     for k in range(zs.shape[0]):
-        z = zs[k].to(agent.device)
+        z = zs[k].to(model.device)
         for episode in range(episodes_per_skill):
-            result = rollout(agent, eval_env, z, max_steps)
+            result = skill_episode(model, eval_env, z, max_steps)
             rows.append({"skill": k, "lam": float(lam[k]), "episode": episode, **result})
-    obs0 = torch.as_tensor(np.stack([r["obs0"] for r in rows]), dtype=torch.float32, device=agent.device)
-    act0 = torch.as_tensor(np.stack([r["action0"] for r in rows]), dtype=torch.float32, device=agent.device)
-    own_z = zs[[r["skill"] for r in rows]].to(agent.device)
-    task_z = z_r.to(agent.device)
-    value = agent.skill_value(obs0, act0, task_z).cpu().numpy().astype(float)
+    obs0 = torch.as_tensor(np.stack([r["obs0"] for r in rows]), dtype=torch.float32, device=model.device)
+    act0 = torch.as_tensor(np.stack([r["action0"] for r in rows]), dtype=torch.float32, device=model.device)
+    own_z = zs[[r["skill"] for r in rows]].to(model.device)
+    task_z = z_r.to(model.device)
+    value = model.skill_value(obs0, act0, task_z).cpu().numpy().astype(float)
     # The task value of following each trajectory's own skill (FB: F(s0, a0, z) . z_r).
-    own_value = agent.skill_value(obs0, act0, own_z, task=task_z).cpu().numpy().astype(float)
+    own_value = model.skill_value(obs0, act0, own_z, task=task_z).cpu().numpy().astype(float)
     returns = np.array([r["return"] for r in rows], dtype=float)
 
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -26,8 +26,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dvfb import envs
 from dvfb.analysis.common import AnalysisError
 from dvfb.errors import DvfbError
+from dvfb.runs.snapshots import load_model
+from dvfb.training.evaluation import run_episode
+from dvfb.training.rollout import Observer
+from dvfb.training.seeding import run_generator, seed_everything
+from dvfb.workflows.resources import check_task_in_domain, open_run
+from dvfb.workflows.zeroshot import run_protocol
 
 FORMATS = (".gif", ".mp4")
 # Camera per domain: the tracking side views of the stock models, the maze's top-down view, and
@@ -109,9 +116,22 @@ class Renderer:
             pass
 
 
+class Frames(Observer):
+    """The frames of an episode: one at the reset, then one every ``frame_skip`` steps."""
+
+    def __init__(self, frames: list, renderer: Renderer, frame_skip: int):
+        self.frames, self.renderer, self.frame_skip = frames, renderer, frame_skip
+
+    def episode_started(self, lane: int, obs) -> None:
+        self.frames.append(self.renderer.frame())
+
+    def transition(self, lane: int, step: int, action, reward, discount, next_obs, info) -> None:
+        if (step + 1) % self.frame_skip == 0:
+            self.frames.append(self.renderer.frame())
+
+
 def make_render_env(task: str, seed: int):
     """The task's environment; dm_control's import fails here when MUJOCO_GL is invalid."""
-    from dvfb import envs
 
     try:
         return envs.make(task, seed=seed)
@@ -139,21 +159,18 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:
                 writer.append_data(frame)
 
 
-def _task_vector(run, config, agent, task: str, snapshot: int, inference: dict | None,
+def _task_vector(run, config, model, task: str, snapshot: int, inference: dict | None,
                  seed: int, infer: bool) -> tuple[torch.Tensor, str]:
-    from dvfb import envs
-    from dvfb.training.seeding import run_generator, seed_everything
-    from dvfb.workflows.zeroshot import run_protocol
 
     stored = run.zeroshot_result(task, snapshot)
     result = None if infer else run.read_zeroshot_result(task, snapshot, AnalysisError)
     if result is not None and isinstance(result.z, list) and result.snapshot_frames == snapshot:
-        return torch.tensor(result.z, dtype=torch.float32, device=agent.device), f"z from {stored}"
+        return torch.tensor(result.z, dtype=torch.float32, device=model.device), f"z from {stored}"
     protocol = run_protocol(config, inference)
     rng = seed_everything(seed)
-    agent.use_generator(run_generator(seed, agent.device))  # the analysis' own random stream
+    model.use_generator(run_generator(seed, model.device))  # the analysis' own random stream
     env = envs.make(task, seed=seed)
-    z, _info = protocol.task_skill(agent, env, rng, envs.TASKS[task].episode_length)
+    z, _info = protocol.task_skill(model, env, rng, envs.TASKS[task].episode_length)
     return z, f"skill found by {protocol.name} in {protocol.task_steps()} reward-labelled steps"
 
 
@@ -163,8 +180,6 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
                  seed: int | None = None, infer: bool = False, overwrite: bool = False,
                  device: str | None = None) -> dict:
     """Render ``episodes`` evaluation episodes of the run's zero-shot policy on ``task`` into one video."""
-    from dvfb.runs.snapshots import load_pretrained_agent
-    from dvfb.workflows.resources import check_task_in_domain, open_run
 
     for name, value in (("--episodes", episodes), ("--frame-skip", frame_skip), ("--height", height),
                         ("--width", width)):
@@ -188,24 +203,16 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
     try:
         env.reset()
         renderer.frame()
-        agent, snapshot = load_pretrained_agent(run, snapshot, device)
-        z, skill_source = _task_vector(run, config, agent, task, snapshot, inference,
+        model, snapshot = load_model(run, snapshot, device)
+        z, skill_source = _task_vector(run, config, model, task, snapshot, inference,
                                    seed, infer)
         frames, returns = [], []
         fps = env.metadata["render_fps"] / frame_skip
         for episode in range(episodes):
             # Reseeding gives the first episode the initial state of the zero-shot evaluation's first.
-            obs, _ = env.reset(seed=seed) if episode == 0 else env.reset()
-            frames.append(renderer.frame())
-            total, steps, done = 0.0, 0, False
-            while not done and (max_steps is None or steps < max_steps):
-                obs, reward, terminated, truncated, _ = env.step(agent.act(obs, z, explore=False))
-                total += reward
-                steps += 1
-                done = terminated or truncated
-                if steps % frame_skip == 0:
-                    frames.append(renderer.frame())
-            returns.append(total)
+            lane = run_episode(env, model.act, z, False, [Frames(frames, renderer, frame_skip)], max_steps,
+                               reset_seed=seed if episode == 0 else None)
+            returns.append(lane.state.episode_return)
     finally:
         renderer.close()
     write_video(out, frames, fps)

@@ -10,7 +10,9 @@ or skill selection (skill discovery). Protocols that infer skills from data also
   run trained on) with the task's rewards relabelled from their physics states;
 * ``goal``: a goal observation.
 
-The result (returns, the skill, the protocol's details) is written to ``RUN/zeroshot/<task>.json``.
+The result (returns, the skill, the protocol's details) is written to ``RUN/zeroshot/<task>.json``
+(:class:`~dvfb.runs.records.ZeroShotResult`). One implementation serves a run and a group of runs
+(docs/members.md): a run is a group of one.
 """
 
 from __future__ import annotations
@@ -19,32 +21,30 @@ import importlib
 import importlib.util
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
 
 from dvfb import envs
-from dvfb.agents import Agent, get_spec
+from dvfb.agents import Model, get_spec
 from dvfb.config import merge, to_dict
+from dvfb.data import PHYSICS_COLUMN, ReplayBuffer, read_dataset, read_info
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
+from dvfb.nets.members import stack_agents
 from dvfb.protocols import SKILL_SOURCES, ZeroShotProtocol, zero_shot_protocol
 from dvfb.protocols.zero_shot import collect_inference_data, infer_task_vector
-from dvfb.data import read_dataset, read_info
-from dvfb.data import PHYSICS_COLUMN, ReplayBuffer
-from dvfb.runs import RunDir, check_writable, load_checkpoint, write_json_atomic
-from dvfb.training.progress import Progress
-from dvfb.training.seeding import seed_everything
-from dvfb.workflows.groups import check_one_method
-from dvfb.workflows.resources import evaluation_tasks
-from dvfb.runs.snapshots import load_pretrained_agent
-from dvfb.workflows.resources import open_run
-from dvfb.training.seeding import run_generator
+from dvfb.runs import check_writable
+from dvfb.runs.layout import PretrainRun
+from dvfb.runs.records import ZeroShotResult
 from dvfb.runs.run_config import PretrainConfig
-from dvfb.nets.members import stack_agents
-from dvfb.workflows.evaluate import Evaluation, evaluate_group, evaluate_policy, run_episodes
-
-Z_SOURCES = SKILL_SOURCES
+from dvfb.runs.snapshots import load_model
+from dvfb.training.evaluation import Evaluation, evaluate, run_episodes
+from dvfb.training.progress import Progress
+from dvfb.training.rollout import Lane, Policy
+from dvfb.training.seeding import run_generator, seed_everything
+from dvfb.workflows.group import check_one_method
+from dvfb.workflows.resources import evaluation_tasks, open_run
 
 
 def run_protocol(config: PretrainConfig, overrides: dict | None = None) -> ZeroShotProtocol:
@@ -71,44 +71,45 @@ def load_reward_fn(spec: str) -> Callable[[np.ndarray], np.ndarray]:
         raise ConfigError(f"cannot load reward function {spec!r}: {exc}") from exc
 
 
-def infer_from_reward_fn(agent: Agent, run: RunDir, config: PretrainConfig, reward_fn: Callable,
-                         protocol: ZeroShotProtocol, rng: np.random.Generator | None = None) -> tuple[torch.Tensor, dict]:
+def infer_from_reward_fn(model: Model, run: PretrainRun, reward_fn: Callable, protocol: ZeroShotProtocol,
+                         rng: np.random.Generator | None = None) -> tuple[torch.Tensor, dict]:
     """Apply ``reward_fn`` to states and infer the skill from those rewards.
 
     The states are those of the run's pre-training replay (its newest resume checkpoint). A run
-    without one (a shipped snapshot, such as the bundled demo agent) collects them instead in the
+    without one (a shipped snapshot, such as the bundled demo model) collects them instead in the
     domain's reward-free environment with the protocol's data-collection rule and budget
     (``inference.steps``, uniform actions first). ``info["states"]`` says which was used.
     """
+    config = run.config
     episode_length = envs.TASKS[envs.pretrain_task(config.domain)].episode_length
     try:
-        state = load_checkpoint(run, None, map_location="cpu")
+        state = run.resume_state()
     except CheckpointError:
         state = None
     if config.dataset:  # an offline run: its dataset's states
-        buffer, _ = read_dataset(config.dataset, agent.device, agent.skill_dim)
+        buffer, _ = read_dataset(config.dataset, model.device, model.skill_dim)
         source = f"the run's dataset {config.dataset}"
     elif state is not None:
-        buffer = ReplayBuffer(config.replay_capacity, agent.obs_dim, agent.action_dim, agent.skill_dim,
-                              episode_length, device=agent.device, columns=state["replay"].get("columns"))
+        buffer = ReplayBuffer(config.replay_capacity, model.obs_dim, model.action_dim, model.skill_dim,
+                              episode_length, device=model.device, columns=state["replay"].get("columns"))
         buffer.load_state_dict(state["replay"])
         source = "the run's pre-training replay"
     else:
         c = protocol.config
         env = envs.make(envs.pretrain_task(config.domain), seed=config.seed, reward_free=True)
         rng = rng if rng is not None else np.random.default_rng(config.seed)
-        buffer = collect_inference_data(agent, env, c.steps, c.random_action_steps, rng, episode_length)
+        buffer = collect_inference_data(model, env, c.steps, c.random_action_steps, rng, episode_length)
         source = f"{c.steps} steps collected in {envs.pretrain_task(config.domain)} (the run has no replay)"
     data = buffer.transitions()
     rewards = np.asarray(reward_fn(data.next_obs.cpu().numpy()), dtype=np.float32).reshape(-1)
     if rewards.shape[0] != data.next_obs.shape[0]:
         raise ConfigError(f"reward function returned {rewards.shape[0]} rewards for {data.next_obs.shape[0]} states")
-    reward_t = torch.as_tensor(rewards, device=agent.device)
-    skill, info = protocol.skill_from_samples(agent, data.obs, data.next_obs, reward_t)
+    reward_t = torch.as_tensor(rewards, device=model.device)
+    skill, info = protocol.skill_from_samples(model, data.obs, data.next_obs, reward_t)
     return skill, {**info, "states": source}
 
 
-def infer_from_dataset(agent: Agent, config: PretrainConfig, task: str, protocol: ZeroShotProtocol,
+def infer_from_dataset(model: Model, config: PretrainConfig, task: str, protocol: ZeroShotProtocol,
                        dataset: str | Path | None) -> tuple[torch.Tensor, dict]:
     """The skill from a dataset's transitions with ``task``'s rewards recomputed from their physics
     states (docs/methods.md, "Datasets"): ``dataset``, or the one the run trained on offline."""
@@ -119,150 +120,108 @@ def infer_from_dataset(agent: Agent, config: PretrainConfig, task: str, protocol
     info = read_info(path)
     if info.domain != config.domain:
         raise ConfigError(f"dataset {path} holds {info.domain} data; the run is on {config.domain}")
-    buffer, _ = read_dataset(path, agent.device, columns=(PHYSICS_COLUMN,))
+    buffer, _ = read_dataset(path, model.device, columns=(PHYSICS_COLUMN,))
     data = buffer.transitions()
     env = envs.make(task, seed=config.seed)
     rewards = env.unwrapped.rewards_from_physics(data.columns["next_" + PHYSICS_COLUMN].cpu().numpy())
-    reward_t = torch.as_tensor(rewards, dtype=torch.float32, device=agent.device).reshape(-1, 1)
-    skill, info_ = protocol.skill_from_samples(agent, data.obs, data.next_obs, reward_t)
+    reward_t = torch.as_tensor(rewards, dtype=torch.float32, device=model.device).reshape(-1, 1)
+    skill, info_ = protocol.skill_from_samples(model, data.obs, data.next_obs, reward_t)
     return skill, {**info_, "states": f"dataset {path} ({info.transitions} transitions, rewards of {task} "
                                       "relabelled from physics)"}
 
 
-def zeroshot(run_path: str | Path, task: str, *, snapshot: int | None = None, inference: dict | None = None,
-             seed: int | None = None, skill_source: str = "rewards", reward_fn: str | Callable | None = None,
-             goal: np.ndarray | None = None, overwrite: bool = False, device: str | None = None,
-             progress: bool | None = None, dataset: str | Path | None = None) -> dict:
+def zeroshot(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot: int | None = None,
+             inference: dict | None = None, seed: int | None = None, skill_source: str = "rewards",
+             reward_fn: str | Callable | None = None, goal: np.ndarray | None = None, overwrite: bool = False,
+             device: str | None = None, progress: bool | None = None, dataset: str | Path | None = None,
+             skip_existing: bool = False):
     """Find the task's skill by the run's zero-shot protocol and evaluate ``pi(., skill)``; returns
-    the result.
+    the result (a dict of the result file's fields).
+
+    Given a list of runs, a group (docs/members.md) in one pass: each member's skill by its own
+    protocol and random streams, as its separate zero-shot finds it; then the evaluation episodes of
+    all members in lockstep, their actions from one batched forward of the stacked actors. Each
+    member's result goes to its own run; the list of results is returned. The runs must be one method
+    with one configuration (seeds aside) and have the snapshot. With ``skip_existing``, the runs
+    that already have the task's result are left out (their entry is None) instead of being an error.
 
     ``progress``: True shows a bar, False nothing, None a bar on a terminal and otherwise a line
     every ``DVFB_PROGRESS_SECONDS`` seconds.
     """
-    run = open_run(run_path)
-    config = run.config
-    protocol = run_protocol(config, inference)
-    protocol.check_source(skill_source, config.agent)
-    evaluation_tasks(config, [task])
-    agent, snapshot = load_pretrained_agent(run, snapshot, device)
-    out = run.zeroshot_result(task, snapshot)
-    if out.exists() and not overwrite:
-        raise RunDirError(f"{out} exists; pass --overwrite to replace it")
-    if goal is not None and skill_source == "goal":
-        check_goal(goal, agent.goal_widths(), config.domain)
-    # The result is written at the end: fail now, not after the work, if it cannot be.
-    check_writable(out.parent if out.parent.exists() else run.path)
-    seed = config.seed if seed is None else seed
-    rng = seed_everything(seed)
-    agent.use_generator(run_generator(seed, agent.device))  # the evaluation's own random stream
-    started = time.time()
-    episode_length = envs.TASKS[task].episode_length
-    bar = Progress(protocol.task_steps(skill_source) + protocol.eval_episodes * episode_length, 0, f"zeroshot {task}",
-                   progress, unit="step")
-    try:
-        z, info = task_skill(agent, run, config, task, protocol, rng, seed, skill_source, reward_fn, goal, progress=bar,
-                             dataset=dataset)
-        eval_env = envs.make(task, seed=seed)
-        evaluation = evaluate_policy(agent, eval_env, z, protocol.eval_episodes, progress=bar)
-    finally:
-        bar.close()
-    return _write_result(out, _result(task, config, seed, snapshot, protocol, skill_source, agent, info, z,
-                                      evaluation, started))
-
-
-def _result(task, config, seed, snapshot, protocol, skill_source, agent, info, z, evaluation, started) -> dict:
-    """What a zero-shot result file holds (one run's, or one member's of a group)."""
-    return {
-        "task": task, "domain": config.domain, "agent": config.agent, "preset": config.preset,
-        "pretrain_seed": config.seed, "seed": seed, "snapshot_frames": snapshot, "protocol": protocol.name,
-        "skill_source": skill_source if agent.skill.has_skill else "none",
-        "inference": to_dict(protocol.config), "inference_info": info, "z": None if z is None else z.cpu().tolist(),
-        **evaluation.summary(), "eval_episodes": len(evaluation.returns), "wall_clock_s": time.time() - started,
-    }
-
-
-def _write_result(out: Path, result: dict) -> dict:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out, result)
-    return result
-
-
-def zeroshot_group(run_paths: list[str | Path], task: str, *, snapshot: int | None = None,
-                   inference: dict | None = None, seed: int | None = None, skill_source: str = "rewards",
-                   reward_fn: str | Callable | None = None, goal: np.ndarray | None = None, overwrite: bool = False,
-                   device: str | None = None, progress: bool | None = None,
-                   dataset: str | Path | None = None, skip_existing: bool = False) -> list[dict | None]:
-    """:func:`zeroshot` of every member of a group (docs/members.md) in one pass: each member's
-    skill by its own protocol and random streams, as its separate zero-shot finds it; then the
-    evaluation episodes of all members in lockstep, their actions from one batched forward of the
-    stacked actors. Each member's result goes to its own run, in :func:`zeroshot`'s format.
-
-    The runs must be one method with one configuration (seeds aside) and have the snapshot. With
-    ``skip_existing``, the members that already have the task's result are left out (their
-    entry of the returned list is None) instead of being an error.
-    """
+    many = not isinstance(run_dir, (str, Path))
+    run_paths = list(run_dir) if many else [run_dir]
     if not run_paths:
         raise ConfigError("a group zero-shot needs at least one run")
+    if len({Path(p).resolve() for p in run_paths}) != len(run_paths):
+        raise ConfigError("a run is listed twice: the members of a group are distinct runs")
     members = []
     for run_path in run_paths:
         run = open_run(run_path)
-        config = run.config
-        protocol = run_protocol(config, inference)
-        protocol.check_source(skill_source, config.agent)
-        evaluation_tasks(config, [task])
-        members.append((run, config, protocol))
-    check_one_method([(run, config) for run, config, _protocol in members])
-    loaded, skipped = [], []
-    for run, config, protocol in members:
-        agent, snap = load_pretrained_agent(run, snapshot, device)
+        protocol = run_protocol(run.config, inference)
+        protocol.check_source(skill_source, run.config.agent)
+        evaluation_tasks(run.config, [task])
+        members.append((run, protocol))
+    if many:
+        check_one_method([(run, run.config) for run, _protocol in members])
+    loaded = []
+    for run, protocol in members:
+        model, snap = load_model(run, snapshot, device)
         out = run.zeroshot_result(task, snap)
         if out.exists() and not overwrite:
             if skip_existing:
-                skipped.append(run)
+                loaded.append(None)
                 continue
             raise RunDirError(f"{out} exists; pass --overwrite to replace it")
         if goal is not None and skill_source == "goal":
-            check_goal(goal, agent.goal_widths(), config.domain)
+            check_goal(goal, model.goal_widths(), run.config.domain)
+        # The result is written at the end: fail now, not after the work, if it cannot be.
         check_writable(out.parent if out.parent.exists() else run.path)
-        loaded.append((agent, snap, out))
-    everyone = members
-    members = [m for m in members if m[0] not in skipped]
-    if not members:
-        return [None] * len(everyone)
-    if len({snap for _a, snap, _o in loaded}) != 1:
+        loaded.append((model, snap))
+    todo = [(run, protocol, *load) for (run, protocol), load in zip(members, loaded) if load is not None]
+    if not todo:
+        return [None] * len(members) if many else None
+    if len({snap for *_rest, snap in todo}) != 1:
         raise ConfigError("the members' snapshots are of different frames; pass --snapshot")
     started = time.time()
     episode_length = envs.TASKS[task].episode_length
-    protocol0 = members[0][2]
-    bar = Progress(len(members) * (protocol0.task_steps(skill_source) + protocol0.eval_episodes * episode_length),
-                   0, f"zeroshot {task} ({len(members)} members)", progress, unit="step")
+    first = todo[0][1]
+    bar = Progress(len(todo) * (first.task_steps(skill_source) + first.eval_episodes * episode_length), 0,
+                   f"zeroshot {task}" + (f" ({len(todo)} members)" if many else ""), progress, unit="step")
     skills, infos, seeds, eval_envs = [], [], [], []
     try:
-        for (run, config, protocol), (agent, _snap, _out) in zip(members, loaded):
-            member_seed = config.seed if seed is None else seed
+        for run, protocol, model, _snap in todo:
+            member_seed = run.config.seed if seed is None else seed
             rng = seed_everything(member_seed)
-            agent.use_generator(run_generator(member_seed, agent.device))
-            z, info = task_skill(agent, run, config, task, protocol, rng, member_seed, skill_source, reward_fn, goal,
+            model.use_generator(run_generator(member_seed, model.device))  # the evaluation's own random stream
+            z, info = task_skill(model, run, task, protocol, rng, member_seed, skill_source, reward_fn, goal,
                                  progress=bar, dataset=dataset)
             skills.append(z)
             infos.append(info)
             seeds.append(member_seed)
             eval_envs.append(envs.make(task, seed=member_seed))
-        group = stack_agents([agent for agent, _snap, _out in loaded])
-        evaluations = evaluate_group(group, eval_envs, None if skills[0] is None else torch.stack(skills),
-                                     protocol0.eval_episodes, progress=bar)
+        models = [model for _run, _protocol, model, _snap in todo]
+        acting = models[0] if len(models) == 1 else stack_agents(models)
+        evaluations = evaluate(acting.act, eval_envs, skills, first.eval_episodes, progress=bar)
     finally:
         bar.close()
+    group = [str(run.path) for run, *_rest in todo] if many else None
     results = []
-    for (run, config, protocol), (agent, snap, out), z, info, member_seed, evaluation in zip(
-            members, loaded, skills, infos, seeds, evaluations):
-        result = _result(task, config, member_seed, snap, protocol, skill_source, agent, info, z, evaluation, started)
-        results.append(_write_result(out, {**result, "group": [str(r.path) for r, _c, _p in members]}))
-    by_run = dict(zip([run for run, _c, _p in members], results))
-    return [by_run.get(run) for run, _c, _p in everyone]
+    for (run, protocol, model, snap), z, info, member_seed, evaluation in zip(todo, skills, infos, seeds, evaluations):
+        config = run.config
+        result = ZeroShotResult(
+            task=task, domain=config.domain, agent=config.agent, preset=config.preset, pretrain_seed=config.seed,
+            seed=member_seed, snapshot_frames=snap, protocol=protocol.name,
+            skill_source=skill_source if model.skill.has_skill else "none", inference=to_dict(protocol.config),
+            inference_info=info, z=None if z is None else z.cpu().tolist(), **evaluation.summary(),
+            eval_episodes=len(evaluation.returns), wall_clock_s=time.time() - started, group=group)
+        run.write_zeroshot_result(result)
+        results.append(result.to_json())
+    by_run = dict(zip([id(run) for run, *_rest in todo], results))
+    answers = [by_run.get(id(run)) for run, _protocol in members]
+    return answers if many else answers[0]
 
 
-def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, protocol: ZeroShotProtocol,
+def task_skill(model: Model, run: PretrainRun, task: str, protocol: ZeroShotProtocol,
                rng: np.random.Generator, seed: int, skill_source: str = "rewards", reward_fn: str | Callable | None = None,
                goal: np.ndarray | None = None, keep_data: bool = False, env=None,
                progress=None, dataset: str | Path | None = None) -> tuple[torch.Tensor | None, dict]:
@@ -273,25 +232,26 @@ def task_skill(agent: Agent, run: RunDir, config: PretrainConfig, task: str, pro
     returned in ``info["buffer"]`` (fine-tuning's D12 option). ``env``: the task environment to
     collect in (fine-tuning goes on in the same one); by default a new one.
     """
+    config = run.config
     protocol.check_source(skill_source, config.agent)
     if skill_source == "rewards":
         env = env if env is not None else envs.make(task, seed=seed)
-        return protocol.task_skill(agent, env, rng, envs.TASKS[task].episode_length, progress=progress,
+        return protocol.task_skill(model, env, rng, envs.TASKS[task].episode_length, progress=progress,
                                    keep_data=keep_data)
     if skill_source == "reward_fn":
         if reward_fn is None:
             raise ConfigError("skill_source 'reward_fn' needs a reward function")
         fn = load_reward_fn(reward_fn) if isinstance(reward_fn, str) else reward_fn
-        return infer_from_reward_fn(agent, run, config, fn, protocol, rng)
+        return infer_from_reward_fn(model, run, fn, protocol, rng)
     if skill_source == "dataset":
-        return infer_from_dataset(agent, config, task, protocol, dataset)
+        return infer_from_dataset(model, config, task, protocol, dataset)
     if goal is None:
         raise ConfigError("skill_source 'goal' needs a goal observation")
-    return protocol.skill_from_goal(agent, goal)
+    return protocol.skill_from_goal(model, goal)
 
 
 def check_goal(goal: np.ndarray, widths: tuple[int, ...], domain: str) -> None:
-    """A goal has one of the widths the agent accepts (an observation of the domain, or what else
+    """A goal has one of the widths the model accepts (an observation of the domain, or what else
     its skill-from-goal map reads)."""
     size = int(np.asarray(goal).size)
     if size not in widths:
@@ -303,10 +263,8 @@ def check_goal(goal: np.ndarray, widths: tuple[int, ...], domain: str) -> None:
 def random_policy_evaluation(task: str, episodes: int, seed: int = 0) -> Evaluation:
     """Uniform-random actions: the floor every zero-shot table should show (returns, and success
     rates where the task has them)."""
-    env = envs.make(task, seed=seed)
-    rng = np.random.default_rng(seed)
-    shape = env.action_space.shape
-    return run_episodes(env, lambda obs: rng.uniform(-1, 1, shape).astype(np.float32), episodes)
+    lanes = [Lane(envs.make(task, seed=seed), np.random.default_rng(seed))]
+    return run_episodes(lanes, Policy(None, uniform=lambda step: True), episodes)[0]
 
 
 def random_policy_return(task: str, episodes: int, seed: int = 0) -> list[float]:
@@ -314,5 +272,5 @@ def random_policy_return(task: str, episodes: int, seed: int = 0) -> list[float]
     return random_policy_evaluation(task, episodes, seed).returns
 
 
-__all__ = ["PretrainConfig", "Z_SOURCES", "infer_task_vector", "run_protocol", "random_policy_evaluation", "random_policy_return",
+__all__ = ["SKILL_SOURCES", "infer_task_vector", "run_protocol", "random_policy_evaluation", "random_policy_return",
            "zeroshot"]
