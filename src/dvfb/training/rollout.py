@@ -114,6 +114,11 @@ class Policy:
     def actions(self, step: int, lanes: Sequence[Lane]) -> list[np.ndarray]:
         if self.uniform is not None and self.uniform(step):
             return [lane.uniform_action() for lane in lanes]
+        if len(lanes) == 1:
+            # One lane (an ordinary run): views instead of stacked copies, once per step.
+            state = lanes[0].state
+            skill = None if state.skill is None else state.skill.unsqueeze(0)
+            return list(self.act(np.asarray(state.obs)[None], skill))
         skills = [lane.state.skill for lane in lanes]
         skill = None if skills[0] is None else torch.stack(skills)
         return list(self.act(np.stack([lane.state.obs for lane in lanes]), skill))
