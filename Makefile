@@ -6,24 +6,31 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench install clean gl-deps
+.PHONY: demo test test-fast bench install clean gl-deps
 
 install: $(STAMP)
 
 # torch is installed first and exactly, so that no looser spec pulls CUDA wheels. The development
-# install includes the optional Meta-World extra, so that the tests cover the faucet tasks.
+# install includes the optional Meta-World extra, so that the tests cover the faucet tasks, and
+# the stats extra, so that they compare the report's aggregates with rliable's.
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev,metaworld]'
+	$(PY) -m pip install --quiet -e '.[dev,metaworld,stats]'
 	touch $(STAMP)
 
 # The GIF of the demo renders with OpenGL: gl-deps installs software OpenGL when it is missing.
 demo: $(STAMP) gl-deps
 	$(VENV)/bin/dvfb demo
 
+# Two pytest-xdist workers; the SLURM tests stay together on one of them (tests/conftest.py).
+TEST_WORKERS ?= 2
 test: $(STAMP) gl-deps
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
+
+# The development tier: everything but the SLURM cluster, the end-to-end pipelines and the slow tests.
+test-fast: $(STAMP) gl-deps
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup -m 'not slurm and not e2e and not slow'
 
 # Software OpenGL (OSMesa) for the rendering tests of `dvfb video` (tests/test_analysis.py).
 # Installed from Debian's libosmesa6 when missing and we are root; otherwise the test says how.

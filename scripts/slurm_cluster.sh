@@ -142,6 +142,11 @@ start() {
         scontrol update NodeName="$(hostname -s)" State=RESUME >/dev/null 2>&1 || true
         wait_for 30 node_idle || die "the node did not become idle: $(sinfo -h -N -o '%T %E') (log: $STATE/log/slurmd.log)"
     fi
+    # The daemons write their pid files after they fork: wait for all three, so that the caller
+    # gets every pid (it stops exactly these processes).
+    for daemon in munged slurmctld slurmd; do
+        wait_for 30 test -s "$STATE/$daemon.pid" || die "$daemon wrote no pid file ($STATE/$daemon.pid)"
+    done
     echo "munged=$(cat "$STATE/munged.pid") slurmctld=$(cat "$STATE/slurmctld.pid") slurmd=$(cat "$STATE/slurmd.pid")"
 }
 

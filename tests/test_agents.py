@@ -108,6 +108,7 @@ def _roundtrip(state):
 
 
 @pytest.mark.parametrize("agent_name", AGENTS)
+@pytest.mark.slow
 def test_resume_equals_uninterrupted_zeroshot_and_finetune(agent_name, tmp_path):
     full, split = tmp_path / "full", tmp_path / "split"
     config = tiny_run_config(agent_name, frames=2000)

@@ -36,12 +36,56 @@ def test_iqm_median_mean_and_optimality_gap_of_a_planted_matrix():
     metrics = agg.aggregate_metrics(matrix)
     assert metrics["iqm"].value == pytest.approx((20 + 30 + 100 + 110) / 4)  # the middle 50%: 4 of 8
     assert metrics["mean"].value == pytest.approx(65.0)
-    assert metrics["median"].value == pytest.approx((30 + 100) / 2)
+    assert metrics["median"].value == pytest.approx((15 + 115) / 2)  # of the two task means
     # shortfall below 100: 100, 90, 80, 70 and four zeros
     assert metrics["optimality_gap"].value == pytest.approx((100 + 90 + 80 + 70) / 8)
     # 12 scores: IQM drops the lowest 3 and the highest 3.
     twelve = agg.ScoreMatrix("m", ["a"], [np.arange(12.0)])
     assert agg.aggregate_metrics(twelve)["iqm"].value == pytest.approx(np.mean(np.arange(3.0, 9.0)))
+
+
+def test_the_median_is_the_median_of_the_task_means_not_of_all_scores():
+    # Task means 0, 40 and 50: median 40. The median of all nine scores would be 10.
+    matrix = agg.ScoreMatrix("m", ["a", "b", "c"], [np.zeros(3), np.array([10.0, 10, 100]), np.full(3, 50.0)])
+    metrics = agg.aggregate_metrics(matrix)
+    assert metrics["median"].value == pytest.approx(40.0)
+    assert metrics["median"].low <= 40.0 <= metrics["median"].high
+    # With unequal runs per task the mean is the mean of the task means, as rliable's.
+    unequal = agg.ScoreMatrix("m", ["a", "b"], [np.array([0.0, 0, 0, 0]), np.array([100.0])])
+    assert agg.aggregate_metrics(unequal)["mean"].value == pytest.approx(50.0)
+
+
+@pytest.mark.filterwarnings("ignore::FutureWarning")  # arch's note about its own random_state argument
+def test_every_aggregate_and_interval_equals_rliables():
+    """rliable 1.2.0 (the ``stats`` extra, which ``make install`` installs) on the same score
+    matrix: the point estimates equal to rounding, on rliable's scale (scores / 100, gamma 1); the
+    intervals, from two different bootstrap implementations, agree to a small fraction of their
+    width (both percentile intervals of a stratified bootstrap, 20000 resamples each)."""
+    rliable_metrics = pytest.importorskip("rliable.metrics", reason="the rliable comparison needs the stats extra")
+    from rliable import library
+
+    rng = np.random.default_rng(5)
+    runs, tasks = 5, 6
+    scores = rng.gamma(2.0, 30.0, size=(runs, tasks)) + rng.normal(0, 20, size=(1, tasks))
+    other = scores + rng.normal(5, 25, size=(runs, tasks))
+    matrix = agg.ScoreMatrix("x", [f"t{i}" for i in range(tasks)], [scores[:, i] for i in range(tasks)])
+    theirs = {"iqm": rliable_metrics.aggregate_iqm, "mean": rliable_metrics.aggregate_mean,
+              "median": rliable_metrics.aggregate_median, "optimality_gap": rliable_metrics.aggregate_optimality_gap}
+    ours = agg.aggregate_metrics(matrix, samples=20000, seed=1)
+    points, intervals = library.get_interval_estimates(
+        {"x": scores / 100.0}, lambda x: np.array([theirs[m](x) for m in agg.METRICS]), reps=20000,
+        random_state=np.random.RandomState(1))
+    for i, name in enumerate(agg.METRICS):
+        estimate = ours[name]
+        assert estimate.value == pytest.approx(100.0 * points["x"][i], rel=1e-9, abs=1e-9), name
+        width = estimate.high - estimate.low
+        assert width > 0, name
+        for mine, rliables in ((estimate.low, intervals["x"][0, i]), (estimate.high, intervals["x"][1, i])):
+            assert abs(mine - 100.0 * rliables) < 0.1 * width, (name, mine, 100.0 * rliables)
+    # P(X > Y): rliable's is the same Mann-Whitney average over tasks.
+    y = agg.ScoreMatrix("y", matrix.tasks, [other[:, i] for i in range(tasks)])
+    assert agg.probability_of_improvement(matrix, y).value == pytest.approx(
+        rliable_metrics.probability_of_improvement(scores, other))
 
 
 def test_stratified_bootstrap_resamples_each_task_on_its_own():
@@ -99,6 +143,7 @@ def test_too_few_runs_give_no_interval():
     assert agg.mean_interval(np.array([1.0, 2.0])).low is None
 
 
+@pytest.mark.slow
 def test_intervals_cover_the_truth_at_about_the_nominal_rate():
     # 400 synthetic experiments of 4 tasks x 10 runs, scores N(mu_t, 10^2): the 95% interval of
     # the mean should contain the true mean (the mean of the mu_t) in about 95% of them, and the
@@ -237,6 +282,7 @@ def test_finetuning_curves_have_bootstrap_bands(tmp_path: Path):
 # the supervised reference
 
 
+@pytest.mark.slow
 def test_supervised_reference_trains_on_its_task_and_is_evaluated_on_it_only(tmp_path: Path, capsys):
     import torch
 

@@ -315,6 +315,7 @@ def tiny_run(tmp_path_factory) -> Path:
     return run_dir
 
 
+@pytest.mark.slow
 def test_analyze_value_end_to_end(tiny_run: Path, capsys):
     args = ["analyze-value", str(tiny_run), "--task", MAZE_TASK, "--skills", "6", "--episodes-per-skill", "1",
             "--bins", "2", "--max-steps", "150", *FAST_INFERENCE]
@@ -359,6 +360,7 @@ def run_dvfb(args: list[str], **env: str) -> subprocess.CompletedProcess:
                           timeout=300)
 
 
+@pytest.mark.slow
 def test_video_renders_with_osmesa(tiny_run: Path, tmp_path: Path):
     if ctypes.util.find_library("OSMesa") is None:
         pytest.fail("libOSMesa (software OpenGL) is not installed, so rendering cannot be tested: install it "
@@ -379,6 +381,7 @@ def test_video_renders_with_osmesa(tiny_run: Path, tmp_path: Path):
 
 
 @pytest.mark.parametrize("backend", ["disable", "no-such-backend"])
+@pytest.mark.slow
 def test_video_without_gl_backend_says_how_to_enable_one(tiny_run: Path, tmp_path: Path, backend: str):
     result = run_dvfb(["video", str(tiny_run), "--task", MAZE_TASK, "--out", str(tmp_path / "v.gif")],
                       MUJOCO_GL=backend)

@@ -21,6 +21,7 @@ def runs(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_load_infer_and_act(runs):
     model = dvfb.load(runs / "dvfb")
     assert model.name == "dvfb" and model.snapshot == 1000

@@ -110,6 +110,7 @@ def test_float64_columns_with_the_observation_are_stored_sampled_saved_and_count
         ReplayBuffer(50, 2, 1, max_episode_length=10, columns={"next_x": 1})
 
 
+@pytest.mark.slow
 def test_pretraining_records_the_physics_of_every_observation(run: Path):
     """The replay's physics rows are the environment's states: a fresh environment reset with the
     run's seed and stepped with the recorded actions goes through the same physics, bit for bit."""
@@ -135,6 +136,7 @@ def test_reward_function_inference_reads_a_replay_that_records_physics(run: Path
     assert result["inference_info"]["states"] == "the run's pre-training replay"
 
 
+@pytest.mark.slow
 def test_export_then_read_gives_the_runs_replay(run: Path, dataset: Path):
     replay = run_replay(run)
     expected = replay.transitions()
@@ -210,6 +212,7 @@ DOMAIN_TASKS = [("walker_walk", "walker_flip"), ("quadruped_walk", "quadruped_ju
 
 
 @pytest.mark.parametrize("task,other", DOMAIN_TASKS, ids=[t for t, _ in DOMAIN_TASKS])
+@pytest.mark.slow
 def test_relabelled_rewards_are_the_environments_bit_for_bit(task: str, other: str, tmp_path: Path):
     """For the episode's own task: the rewards the environment returned. For another task of the
     domain: the rewards of that task's environment started in the same state and stepped with the

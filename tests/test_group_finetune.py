@@ -120,6 +120,7 @@ SCHEDULE = {"seed_frames": 300, "eval_every": 500, "eval_episodes": 1, "update_e
 
 
 @pytest.mark.parametrize("agent_name, skill", [("dvfb", None), ("diayn", "resample"), ("rnd", None)])
+@pytest.mark.slow
 def test_group_finetuning_writes_each_members_own_run_close_to_its_separate_run(tmp_path, agent_name, skill):
     paths = [tmp_path / f"p_s{s}" for s in SEEDS]
     pretrain(tiny_run_config(agent_name), paths, seeds=SEEDS, progress=False)
@@ -165,6 +166,7 @@ def _finetuner_state(path):
     return load_checkpoint(RunDir(path))["finetuner"]
 
 
+@pytest.mark.slow
 def test_group_finetuning_resume_equals_uninterrupted_group(fb_group):
     inference, options = _fast("fb"), dict(SCHEDULE)
     finetune(fb_group, MAZE, name="full", inference=inference, finetune={**options, "frames": 2000},
@@ -184,6 +186,7 @@ def test_group_finetuning_resume_equals_uninterrupted_group(fb_group):
             assert torch.equal(value, b[key]), (path.name, key)
 
 
+@pytest.mark.slow
 def test_a_non_finite_member_stops_its_fine_tuning_alone(fb_group, capsys):
     inference, options = _fast("fb"), dict(SCHEDULE)
     finetune(fb_group, MAZE, name="nan", inference=inference, finetune={**options, "frames": 1000},
@@ -209,6 +212,7 @@ def _cli(*args):
     return subprocess.run([sys.executable, "-m", "dvfb", "finetune", *args], capture_output=True, text=True)
 
 
+@pytest.mark.slow
 def test_bad_group_fine_tunings_are_one_line_and_create_nothing(tmp_path, fb_group):
     aps = [tmp_path / f"aps_s{s}" for s in SEEDS]  # APS has a task regression
     pretrain(tiny_run_config("aps", frames=1000), aps, seeds=SEEDS, progress=False)

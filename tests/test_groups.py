@@ -60,6 +60,7 @@ def test_group_members_are_ordinary_runs_close_to_their_separate_runs(tmp_path):
 
 
 @pytest.mark.parametrize("agent_name", ["dvfb", "diayn", "rnd"])
+@pytest.mark.slow
 def test_group_zeroshot_equals_each_members_own(tmp_path, agent_name):
     from dvfb.workflows.zeroshot import zeroshot
 
@@ -81,6 +82,7 @@ def test_group_zeroshot_equals_each_members_own(tmp_path, agent_name):
         assert b["group"] == [str(p) for p in paths]
 
 
+@pytest.mark.slow
 def test_group_resume_equals_uninterrupted_group(tmp_path):
     config = tiny_run_config("fb", frames=2000)
     full = [tmp_path / f"full_s{s}" for s in SEEDS]
@@ -95,6 +97,7 @@ def test_group_resume_equals_uninterrupted_group(tmp_path):
                 assert torch.equal(tensor, b[key][name]), (a_path.name, key, name)
 
 
+@pytest.mark.slow
 def test_a_non_finite_member_stops_alone(tmp_path, capsys):
     config = tiny_run_config("fb", frames=1000)
     paths = [tmp_path / f"m_s{s}" for s in SEEDS]
@@ -152,6 +155,7 @@ def _cli(*args):
     (["--seeds", "0,0", "--run-dir", "{tmp}/r_{seed}"], "lists a seed twice"),
     (["--seeds", "0,x", "--run-dir", "{tmp}/r_{seed}"], "invalid seeds"),
 ])
+@pytest.mark.slow
 def test_bad_seeds_are_one_line_and_create_nothing(tmp_path, args, message):
     done = _cli(*[a.replace("{tmp}", str(tmp_path)) for a in args])
     assert done.returncode != 0
@@ -160,6 +164,7 @@ def test_bad_seeds_are_one_line_and_create_nothing(tmp_path, args, message):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_a_group_refuses_an_existing_member_directory_before_creating_any(tmp_path):
     pretrain(tiny_run_config("fb", frames=600, seed=1), tmp_path / "r_1", progress=False)
     before = sorted(p.name for p in (tmp_path / "r_1").iterdir())
@@ -169,6 +174,7 @@ def test_a_group_refuses_an_existing_member_directory_before_creating_any(tmp_pa
     assert sorted(p.name for p in (tmp_path / "r_1").iterdir()) == before
 
 
+@pytest.mark.slow
 def test_a_group_that_does_not_fit_is_refused_before_anything_is_built(tmp_path):
     from dvfb.data import ReplayBuffer
     from dvfb.workflows.resources import available_memory_bytes
@@ -188,6 +194,7 @@ def test_a_group_that_does_not_fit_is_refused_before_anything_is_built(tmp_path)
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_group_zeroshot_skip_existing_evaluates_only_the_members_without_a_result(tmp_path):
     from dvfb.workflows.zeroshot import zeroshot
 

@@ -122,6 +122,7 @@ def test_gymnasium_registration_matches_make():
 
 
 @pytest.mark.parametrize("name", TASKS)
+@pytest.mark.slow
 def test_each_reset_switches_to_an_ml1_test_task(name):
     seed = 7
     env = envs.make(name, seed=seed)
@@ -355,6 +356,8 @@ FAST_INFERENCE = ["--inference.steps", "300", "--inference.random-action-steps",
                   "--inference.samples", "300", "--inference.eval-episodes", "2"]
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_pretrain_zeroshot_finetune_and_report_record_success_rates(tmp_path, capsys):
     from dvfb.cli import main
 

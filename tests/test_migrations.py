@@ -66,6 +66,7 @@ def test_a_model_of_the_previous_release_loads_and_acts(old_runs):
     assert dvfb.load(old_runs / "rnd_maze").act(obs).shape == (2,)
 
 
+@pytest.mark.slow
 def test_the_commands_continue_the_runs_of_the_previous_release(old_runs, capsys):
     dvfb_run, rnd_run = old_runs / "dvfb_maze", old_runs / "rnd_maze"
     # A new zero-shot result beside the old one, and a report over both releases' records.

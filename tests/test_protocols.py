@@ -215,6 +215,7 @@ def test_a_resume_checkpoint_of_the_old_format_is_refused_in_one_line(tmp_path):
 
 
 @pytest.mark.parametrize("skill_mode", ["selected", "resample"])
+@pytest.mark.slow
 def test_skill_discovery_fine_tuning_resumes_as_if_uninterrupted(skill_mode, tmp_path):
     """Selection, then URLB fine-tuning with a fixed or resampled skill, interrupted at an episode
     end and resumed: the curve, the skill and every parameter equal the uninterrupted run's."""

@@ -40,6 +40,7 @@ def pretrained(tmp_path_factory) -> Path:
     return run_dir
 
 
+@pytest.mark.slow
 def test_pretrain_writes_run_directory(pretrained: Path):
     config = json.loads((pretrained / "config.json").read_text())
     assert config["agent"] == "dvfb" and config["domain"] == "point_mass_maze"
@@ -55,6 +56,8 @@ def test_pretrain_writes_run_directory(pretrained: Path):
     assert summary["frames"] == 2000 and summary["episodes"] == 2
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_zeroshot_then_finetune(pretrained: Path, capsys):
     assert main(["zeroshot", str(pretrained), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE]) == 0
     result = json.loads((pretrained / "zeroshot" / "point_mass_maze_reach_top_left.json").read_text())
@@ -77,6 +80,7 @@ def test_zeroshot_then_finetune(pretrained: Path, capsys):
     assert not any(k.startswith("agent.") for k in state["finetuner"]["finetuner"])
 
 
+@pytest.mark.slow
 def test_reward_fn_and_goal_inference(pretrained: Path, tmp_path: Path):
     reward_file = tmp_path / "reward.py"
     reward_file.write_text("import numpy as np\n\ndef right_side(next_obs):\n    return (next_obs[:, 0] > 0).astype(np.float32)\n")
@@ -101,6 +105,7 @@ SAMPLINGS = {"uniform": [], "loader_shards": ["--replay.sampling", "loader_shard
 
 
 @pytest.mark.parametrize("sampling", sorted(SAMPLINGS))
+@pytest.mark.slow
 def test_resume_continues_as_if_uninterrupted(tmp_path: Path, sampling: str):
     full, split = tmp_path / "full", tmp_path / "split"
     extra = SAMPLINGS[sampling]
@@ -178,6 +183,7 @@ def test_task_from_another_domain(pretrained: Path, capsys):
     assert "walker_walk" in capsys.readouterr().err  # lists the valid names
 
 
+@pytest.mark.slow
 def test_snapshot_from_another_agent_or_config(pretrained: Path, tmp_path: Path, capsys):
     fb_run = tmp_path / "fb"
     assert main(pretrain_args(fb_run, 1000, agent="fb")) == 0
@@ -213,6 +219,7 @@ def test_unknown_preset_and_option_values(tmp_path: Path, capsys):
     assert not (tmp_path / "y").exists() and not (tmp_path / "z").exists()
 
 
+@pytest.mark.slow
 def test_cli_help_and_tasks_as_a_real_process():
     """The installed entry point runs as a separate process (what a user types)."""
     out = subprocess.run([sys.executable, "-m", "dvfb", "tasks"], capture_output=True, text=True, check=True).stdout
@@ -224,6 +231,8 @@ def test_cli_help_and_tasks_as_a_real_process():
     assert "--fb.hidden-dim" in help_text and "(default: 256)" in help_text and "--exploration.alpha" in help_text
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_code_preset_runs_end_to_end(tmp_path: Path):
     """The authors' constants: B on their state pairings (needs s'' from replay), alpha 50, RND on s_t."""
     run_dir = tmp_path / "code"
@@ -238,6 +247,7 @@ def test_code_preset_runs_end_to_end(tmp_path: Path):
     assert len(result["z"]) == 16
 
 
+@pytest.mark.slow
 def test_finetune_resume_continues_as_if_uninterrupted(pretrained: Path):
     common = ["--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "--finetune.seed-frames", "400",
               "--finetune.eval-every", "1000", "--finetune.eval-episodes", "1", "--finetune.checkpoint-every", "1000",
@@ -257,6 +267,8 @@ def test_finetune_resume_continues_as_if_uninterrupted(pretrained: Path):
             assert torch.equal(a[part][key], b[part][key]), (part, key)
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_demo_runs_the_bundled_agent_a_gif_and_a_live_pretraining(tmp_path: Path):
     """`dvfb demo` (the README's first command) with tiny budgets, rendering with software OpenGL."""
     out = tmp_path / "demo"

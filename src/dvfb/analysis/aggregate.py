@@ -2,13 +2,15 @@
 (docs/reports.md; Agarwal et al., NeurIPS 2021, "Deep RL at the Edge of the Statistical Precipice").
 
 A method's results form a score matrix: for every task, the (normalised) scores of its runs
-(seeds). Over all runs x tasks of a matrix:
+(seeds). Every aggregate is defined as rliable 1.2.0 defines it (the tests compare them):
 
-* ``iqm`` -- the interquartile mean: the mean of the middle 50% of all scores
-  (``scipy.stats.trim_mean(x, 0.25)``, as rliable computes it);
-* ``mean`` and ``median`` of all scores;
-* ``optimality_gap`` -- the mean shortfall below the normaliser's 100, ``mean(max(100 - x, 0))``
-  (lower is better);
+* ``iqm`` -- the interquartile mean: the mean of the middle 50% of all runs x tasks scores
+  (``scipy.stats.trim_mean(x, 0.25)``);
+* ``mean`` and ``median`` -- the mean and the median over tasks of each task's mean score over
+  its runs (with equal runs per task, the mean equals the mean of all scores; the median does not
+  equal the median of all scores);
+* ``optimality_gap`` -- the mean shortfall of all scores below the normaliser's 100,
+  ``mean(max(100 - x, 0))`` (lower is better);
 * the probability of improvement ``P(X > Y)`` of one method over another: per task, the chance
   that a random run of X scores above a random run of Y (ties count a half), averaged over tasks;
 * a performance profile: for each threshold ``tau``, the fraction of runs x tasks scoring above it.
@@ -52,6 +54,9 @@ def optimality_gap(x: np.ndarray, axis: int = -1) -> np.ndarray:
 
 METRIC_FUNCTIONS: dict[str, Callable[..., np.ndarray]] = {
     "iqm": iqm, "mean": np.mean, "median": np.median, "optimality_gap": optimality_gap}
+# Metrics of the per-task mean scores (rliable's aggregate_mean and aggregate_median); the others
+# pool all runs x tasks scores.
+OF_TASK_MEANS = frozenset({"mean", "median"})
 
 
 @dataclass(frozen=True)
@@ -144,15 +149,27 @@ def _pooled(metric: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
     return statistic
 
 
+def _of_task_means(metric: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
+    def statistic(*columns: np.ndarray, axis: int = -1) -> np.ndarray:
+        return metric(np.stack([c.mean(axis=axis) for c in columns], axis=-1), axis=-1)
+    return statistic
+
+
+def metric_statistic(name: str) -> Callable[..., np.ndarray]:
+    """``statistic(*columns, axis=-1)`` of the metric ``name`` over a matrix's columns."""
+    metric = METRIC_FUNCTIONS[name]
+    return _of_task_means(metric) if name in OF_TASK_MEANS else _pooled(metric)
+
+
 def aggregate_metrics(matrix: ScoreMatrix, *, samples: int = BOOTSTRAP_SAMPLES, confidence: float = CONFIDENCE,
                       seed: int = 0) -> dict[str, Estimate]:
     """IQM, mean, median and optimality gap of the matrix, with intervals when it has the runs."""
     out = {}
     for name in METRICS:
-        metric = METRIC_FUNCTIONS[name]
-        value = float(metric(matrix.flat))
+        statistic = metric_statistic(name)
+        value = float(statistic(*matrix.columns))
         if matrix.can_bootstrap:
-            low, high = stratified_interval(matrix.columns, _pooled(metric), samples=samples,
+            low, high = stratified_interval(matrix.columns, statistic, samples=samples,
                                             confidence=confidence, seed=seed)
             out[name] = Estimate(value, float(low), float(high))
         else:
