@@ -67,6 +67,17 @@ def test_create_writes_config_and_meta(tmp_path):
     assert meta["dvfb_version"] == __version__
     assert meta["command"] == ["dvfb", "pretrain", "--seed", "3"]
     assert "created" in meta
+    # The machine and the versions that decide the numbers.
+    import mujoco
+    import numpy
+
+    machine = meta["machine"]
+    assert machine["versions"]["torch"] in (torch.__version__, torch.__version__.split("+")[0])
+    assert machine["versions"]["numpy"] == numpy.__version__ and machine["versions"]["mujoco"] == mujoco.__version__
+    assert machine["versions"]["dm_control"]
+    assert machine["cpu"]["torch_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert ("avx2" in machine["cpu"]["vector_extensions"]) == (torch.backends.cpu.get_cpu_capability() != "DEFAULT")
+    assert machine["gpus"] == [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())]
 
 
 def test_create_refuses_existing_non_empty_directory(tmp_path):

@@ -631,7 +631,7 @@ def test_replay_sample_has_no_python_loop_over_the_batch():
 
 def test_perf_defaults_are_fp32_eager():
     config = PerfConfig()
-    assert (config.precision, config.compile, config.cuda_graphs) == ("fp32", False, False)
+    assert (config.precision, config.compile, config.cuda_graphs, config.tf32) == ("fp32", False, False, False)
     runner = NetRunner(None, "cpu")
     net = nn.Linear(3, 2)
     x = torch.randn(4, 3)
@@ -680,6 +680,23 @@ def test_cuda_graphs_on_cpu_is_a_config_error():
         NetRunner(PerfConfig(cuda_graphs=True), "cpu")
     with pytest.raises(ConfigError, match="cuda_graphs"):
         FBAgent(OBS, ACT, small_config(), perf=PerfConfig(cuda_graphs=True))
+
+
+def test_tf32_is_off_unless_asked_and_refused_off_cuda():
+    # The switches are process-wide and settable without a GPU; a CUDA runner sets them from the
+    # config (docs/performance.md), here set_tf32 itself is checked.
+    from dvfb.execution import set_tf32
+
+    before = (torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.conv.fp32_precision)
+    try:
+        set_tf32(True)
+        assert (torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.conv.fp32_precision) == ("tf32", "tf32")
+        set_tf32(False)
+        assert (torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.conv.fp32_precision) == ("ieee", "ieee")
+    finally:
+        torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.conv.fp32_precision = before
+    with pytest.raises(ConfigError, match="perf.tf32 applies to CUDA"):
+        NetRunner(PerfConfig(tf32=True), "cpu")
 
 
 def test_compile_failure_falls_back_to_eager_with_a_warning(monkeypatch, caplog):

@@ -20,6 +20,7 @@ from dvfb import __version__
 from dvfb.config import load_json, save_json, to_dict
 from dvfb.errors import ConfigError, RunDirError
 from dvfb.files import _TEMP_MARK, _atomic_write, read_json, write_json_atomic
+from dvfb.runs import machine
 
 T = TypeVar("T")
 
@@ -132,6 +133,7 @@ class RunDir:
             "command": list(command) if command is not None else None,
             "python": platform.python_version(),
             "torch": torch.__version__,
+            "machine": machine.describe(),
         }
         write_json_atomic(path / META_FILE, meta)
         return RunDir(path)
