@@ -4,14 +4,22 @@ and the bad-input cases. Real files, a dataset exported from a real maze run."""
 
 from __future__ import annotations
 
+import hashlib
 import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from dvfb.analysis.common import method_name
 from dvfb.cli import main
+from dvfb.errors import ConfigError
 from dvfb.workflows.datasets import export_run
 from dvfb.runs import load_checkpoint, load_snapshot
 
@@ -44,6 +52,7 @@ def snapshot_tensors(run: Path, frames: int) -> dict[str, torch.Tensor]:
     return {f"{m}.{k}": v for m, sd in state["modules"].items() for k, v in sd.items()}
 
 
+@pytest.mark.slow
 def test_an_offline_run_updates_every_step_and_checkpoints_without_the_replay(dataset: Path, tmp_path: Path):
     run = tmp_path / "fb_offline"
     assert offline(run, dataset, "fb", 250) == 0
@@ -60,6 +69,7 @@ def test_an_offline_run_updates_every_step_and_checkpoints_without_the_replay(da
 
 
 @pytest.mark.parametrize("agent", ["vcfb", "sf"])
+@pytest.mark.slow
 def test_offline_resume_equals_an_uninterrupted_run(dataset: Path, tmp_path: Path, agent: str):
     full, split = tmp_path / "full", tmp_path / "split"
     assert offline(full, dataset, agent, 200) == 0
@@ -116,3 +126,113 @@ def test_bad_offline_input_is_one_line_and_creates_nothing(dataset: Path, tmp_pa
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "--dataset DIR" in err[0]
     assert not (online / "zeroshot").exists()
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _reexport(dataset: Path, change) -> None:
+    """Rewrite ``dataset`` in place as a re-export would: the same file names and shapes, other
+    contents (``change`` maps an episode's arrays), a new dataset.json."""
+    from dvfb.data.datasets import EPISODES_DIR, load_episode, read_info, write_dataset
+
+    info = read_info(dataset)
+    arrays = [(i, change(load_episode(dataset / EPISODES_DIR / name, info))) for i, name in enumerate(info.files)]
+    fresh = dataset.with_name(dataset.name + "_new")
+    write_dataset(fresh, info, arrays)
+    shutil.rmtree(dataset)
+    fresh.rename(dataset)
+
+
+@pytest.mark.slow
+def test_a_resume_or_an_offline_zero_shot_on_other_data_is_one_line_and_changes_nothing(dataset: Path, tmp_path: Path,
+                                                                                        capsys):
+    data, run = tmp_path / "data", tmp_path / "fb_offline"
+    shutil.copytree(dataset, data)
+    recorded = json.loads((data / "dataset.json").read_text())["digests"]
+    assert sorted(recorded) == ["episode_000000_1000.npz", "episode_000001_1000.npz"]
+    assert offline(run, data, "fb", 100) == 0
+    assert json.loads((run / "trained_on.json").read_text())["digests"] == recorded
+    # The same data under another name is the same data: the resume continues.
+    _reexport(data, lambda a: a)
+    assert offline(run, data, "fb", 150, "--resume") == 0
+    capsys.readouterr()
+    # Observations x 0.5 under the same names and shapes: not the data the run was made from.
+    _reexport(data, lambda a: {**a, "observation": a["observation"] * 0.5})
+    before = _tree(run)
+    task = "point_mass_maze_reach_top_right"
+    for argv in (["pretrain", "--agent", "fb", *COMMON, "--dataset", str(data), "--frames", "200",
+                  "--checkpoint-every", "100", "--run-dir", str(run), *TINY_FB, "--resume"],
+                 ["zeroshot", str(run), "--task", task, "--skill-source", "dataset"]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "other data" in err[0] and "episode_000000_1000.npz" in err[0], err
+        assert _tree(run) == before
+    # A file changed behind dataset.json's back is named on every read, relabelling included.
+    episode = data / "buffer" / "episode_000001_1000.npz"
+    with np.load(episode) as file:
+        arrays = dict(file)
+    arrays["reward"] = arrays["reward"] + 1.0
+    np.savez_compressed(episode, **arrays)
+    assert main(["dataset", "relabel", str(data), "--task", task, "--out", str(tmp_path / "relabelled")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(episode) in err[0] and "contents changed" in err[0]
+    assert not (tmp_path / "relabelled").exists()
+
+
+def test_a_dataset_with_an_episode_of_0_steps_is_refused_naming_the_file(dataset: Path, tmp_path: Path, capsys):
+    from dvfb.data import read_dataset
+
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    info = json.loads((data / "dataset.json").read_text())
+    with np.load(data / "buffer" / info["files"][0]) as file:
+        empty = {key: value[:1] for key, value in file.items()}  # the reset row only: 0 steps
+    name = "episode_000002_0.npz"
+    np.savez_compressed(data / "buffer" / name, **empty)
+    info.update(files=[*info["files"], name], episodes=info["episodes"] + 1,
+                digests={**info["digests"], name: hashlib.sha256((data / "buffer" / name).read_bytes()).hexdigest()})
+    (data / "dataset.json").write_text(json.dumps(info))
+    named = str(data / "buffer" / name)
+    with pytest.raises(ConfigError, match="holds 0 steps") as exc:
+        read_dataset(data)
+    assert named in str(exc.value)
+    before = _tree(data)
+    run, out = tmp_path / "never", tmp_path / "relabelled"
+    for argv in (["pretrain", "--agent", "fb", *COMMON, "--dataset", str(data), "--frames", "100", "--run-dir",
+                  str(run), *TINY_FB],
+                 ["dataset", "relabel", str(data), "--task", "point_mass_maze_reach_top_right", "--out", str(out)]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and named in err[0] and "0 steps" in err[0], err
+    assert not run.exists() and not out.exists() and _tree(data) == before
+
+
+@pytest.mark.slow
+def test_sigterm_and_resume_of_an_offline_run_write_the_same_records_and_learner(dataset: Path, tmp_path: Path):
+    """The signal's checkpoint cuts a metric window and carries its rows: the resumed run's metric
+    records equal an uninterrupted run's (fps aside), and so does its final snapshot."""
+    full, split = tmp_path / "full", tmp_path / "split"
+    args = ["pretrain", "--agent", "fb", *COMMON, "--dataset", str(dataset), "--frames", "3000",
+            "--checkpoint-every", "1000", *TINY_FB]
+    assert main([*args, "--run-dir", str(full)]) == 0
+    command = [sys.executable, "-m", "dvfb", *args, "--run-dir", str(split)]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    metrics = split / "metrics" / "train.jsonl"
+    deadline = time.monotonic() + 120
+    while not (metrics.exists() and metrics.read_text().count("\n") >= 2) and process.poll() is None:
+        assert time.monotonic() < deadline, "no metric record within 120 s"
+        time.sleep(0.05)
+    process.send_signal(signal.SIGTERM)
+    _out, err = process.communicate(timeout=120)
+    assert process.returncode == 128 + signal.SIGTERM, err
+    step = load_checkpoint(split)["step"]
+    assert 100 <= step < 3000  # inside a window of log_every 50 unless it lands on a multiple (2%)
+    resumed = subprocess.run([*command, "--resume"], capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    records = lambda run: [{k: v for k, v in json.loads(x).items() if k != "fps"}  # noqa: E731
+                           for x in (run / "metrics" / "train.jsonl").read_text().splitlines()]
+    assert len(records(full)) == 60 and records(full) == records(split)
+    a, b = snapshot_tensors(full, 3000), snapshot_tensors(split, 3000)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)

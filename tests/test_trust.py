@@ -90,6 +90,7 @@ BAD_ZEROSHOT = [
 
 
 @pytest.mark.parametrize("extra,message", BAD_ZEROSHOT, ids=[" ".join(e) for e, _ in BAD_ZEROSHOT])
+@pytest.mark.slow
 def test_bad_zeroshot_option_writes_nothing(finished_run, extra, message, capsys):
     argv = ["zeroshot", str(finished_run), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, *extra]
     assert main(argv) == 2
@@ -140,7 +141,7 @@ def test_orphaned_checkpoint_is_removed_on_the_next_start(finished_run, tmp_path
     orphan = run / "checkpoints" / "resume_500.pt"
     save_checkpoint(run, {"step": 1}, "resume_999", keep_previous=True)  # a kill between move and cleanup
     orphan.write_bytes(b"left behind")
-    save_checkpoint(run, {"step": 0}, "keep")  # noqa: the pointer moves on; resume_999 becomes an orphan too
+    save_checkpoint(run, {"step": 0}, "keep")  # the pointer moves on; resume_999 becomes an orphan too
     (run / "checkpoints" / "latest").write_text(f"{latest_checkpoint(finished_run).name}\n")
     shutil.copy(latest_checkpoint(finished_run), run / "checkpoints" / latest_checkpoint(finished_run).name)
     assert main(pretrain_argv(run, 2000, "--resume")) == 0
@@ -172,6 +173,13 @@ def _snapshot_modules(run: Path, frames: int) -> dict:
     return load_snapshot(RunDir(run), f"snapshot_{frames}")["modules"]
 
 
+def metric_records(run: Path) -> dict[str, list[dict]]:
+    """Every metric record of a run, by file, without its speed field (fps: a wall-clock reading)."""
+    return {path.name: [{k: v for k, v in json.loads(line).items() if k != "fps"} for line in path.read_text().splitlines()]
+            for path in sorted((run / "metrics").glob("*.jsonl"))}
+
+
+@pytest.mark.slow
 def test_sigterm_checkpoints_and_resume_equals_uninterrupted(tmp_path):
     full, split = tmp_path / "full", tmp_path / "split"
     assert main(pretrain_argv(full, 2000)) == 0
@@ -195,8 +203,52 @@ def test_sigterm_checkpoints_and_resume_equals_uninterrupted(tmp_path):
     for key in a:
         for name, tensor in a[key].items():
             assert torch.equal(tensor, b[key][name]), (key, name)
+    # The signal cut a metric window: its rows went into the checkpoint, so the logs are the same
+    # records at the same steps (docs/methods.md, "Training loop").
+    records = metric_records(full)
+    assert records["train.jsonl"] and records == metric_records(split)
 
 
+def _interrupted(argv: list[str], watch: Path) -> None:
+    """Run ``argv`` in a process, SIGTERM it once ``watch`` (a metrics file) exists, then resume it."""
+    process = _spawn(argv)
+    _wait_for(watch, process)
+    process.send_signal(signal.SIGTERM)
+    _out, err = process.communicate(timeout=120)
+    assert process.returncode == 128 + signal.SIGTERM and "SIGTERM received" in err, err
+    resumed = subprocess.run([*DVFB, *argv, "--resume"], capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+
+
+FINETUNE = ["--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "--finetune.frames", "3000",
+            "--finetune.seed-frames", "250", "--finetune.update-every", "2", "--finetune.eval-every", "1500",
+            "--finetune.eval-episodes", "1", "--finetune.checkpoint-every", "1000",
+            "--no-progress"]
+
+
+@pytest.mark.slow
+def test_a_signal_changes_no_metric_record_of_a_group_or_a_fine_tuning(finished_run, tmp_path):
+    """SIGTERM, then --resume: every member's metric records (and a fine-tuning's, and its curve)
+    equal those of a run that was never stopped, fps aside; so do the learners."""
+    full, split = str(tmp_path / "full_{seed}"), str(tmp_path / "split_{seed}")
+    group = ["pretrain", "--agent", "fb", *MAZE, "--frames", "2500", "--no-progress", *TINY, "--seeds", "0,1"]
+    assert main([*group, "--run-dir", full]) == 0
+    _interrupted([*group, "--run-dir", split], tmp_path / "split_1" / "metrics" / "train.jsonl")
+    for seed in (0, 1):
+        a, b = tmp_path / f"full_{seed}", tmp_path / f"split_{seed}"
+        assert metric_records(a)["train.jsonl"] and metric_records(a) == metric_records(b), seed
+        for key, modules in _snapshot_modules(a, 2500).items():
+            for name, tensor in modules.items():
+                assert torch.equal(tensor, _snapshot_modules(b, 2500)[key][name]), (seed, key, name)
+    assert main(["finetune", str(finished_run), *FINETUNE, "--name", "full"]) == 0
+    ft = finished_run / "finetune"
+    _interrupted(["finetune", str(finished_run), *FINETUNE, "--name", "split"], ft / "split" / "metrics" / "train.jsonl")
+    assert metric_records(ft / "full")["train.jsonl"] and metric_records(ft / "full") == metric_records(ft / "split")
+    curve = lambda name: json.loads((ft / name / "curve.json").read_text())["curve"]  # noqa: E731
+    assert [p["returns"] for p in curve("full")] == [p["returns"] for p in curve("split")]
+
+
+@pytest.mark.slow
 def test_a_second_writer_is_refused_with_the_holders_pid(tmp_path):
     run = tmp_path / "locked"
     first = _spawn(pretrain_argv(run, 100_000))
@@ -229,6 +281,7 @@ def small_disk(tmp_path):
     subprocess.run(["umount", "-l", str(mount)], check=True)
 
 
+@pytest.mark.slow
 def test_full_disk_during_a_checkpoint_is_one_line_and_keeps_the_previous_one(small_disk, capsys):
     run = small_disk / "run"
     # The first checkpoint (step 1000, small replay) fits; the one at 2000 does not.
@@ -257,6 +310,7 @@ def test_read_only_run_fails_before_the_work(finished_run, small_disk, capsys):
     assert "Read-only file system" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_read_only_outputs_of_the_report_and_the_analyses_are_one_line(finished_run, small_disk, capsys):
     import shutil
 
@@ -282,6 +336,7 @@ def test_read_only_outputs_of_the_report_and_the_analyses_are_one_line(finished_
     assert "Read-only file system" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_resume_of_a_damaged_run_directory_changes_nothing(tmp_path, capsys):
     run = tmp_path / "run"
     assert main(pretrain_argv(run, 1200, "--checkpoint-every", "1000")) == 0
@@ -321,6 +376,7 @@ def test_singular_covariance_names_the_step_and_the_ridge_option():
         window.flush()
 
 
+@pytest.mark.slow
 def test_progress_lines_without_a_terminal(tmp_path):
     run = tmp_path / "progress"
     done = subprocess.run([*DVFB, *[a for a in pretrain_argv(run, 1500) if a != "--no-progress"]],
@@ -347,8 +403,10 @@ def test_finetune_name_outside_the_finetune_folder_is_refused_and_nothing_is_del
 
 def test_random_policy_with_no_episodes_is_refused(tmp_path, capsys):
     out = tmp_path / "random.json"
-    assert main(["random-policy", "--domain", "point_mass_maze", "--episodes", "0", "--output", str(out)]) == 2
-    assert "--episodes must be at least 1" in capsys.readouterr().err and not out.exists()
+    with pytest.raises(SystemExit) as exc:
+        main(["random-policy", "--domain", "point_mass_maze", "--episodes", "0", "--output", str(out)])
+    assert exc.value.code == 2
+    assert "argument --episodes: invalid integer >= 1 value: '0'" in capsys.readouterr().err and not out.exists()
 
 
 def test_non_finite_rewards_or_goals_never_give_a_nan_skill(finished_run):
@@ -417,13 +475,49 @@ def test_api_inputs_of_the_wrong_shape_are_named(finished_run):
 @pytest.mark.parametrize("command", [["zeroshot", "RUN", "--task", "point_mass_maze_reach_top_left"],
                                      ["finetune", "RUN", "--task", "point_mass_maze_reach_top_left"],
                                      ["analyze-exploration", "RUN"], ["random-policy", "--domain", "point_mass_maze"]])
-def test_a_negative_seed_is_one_line_exit_2(finished_run, command, capsys):
-    argv = [str(finished_run) if part == "RUN" else part for part in command] + ["--seed", "-1"]
+@pytest.mark.parametrize("seed", ["-1", "4294967296"])
+def test_a_seed_outside_0_to_2_32_is_one_line_exit_2(finished_run, command, seed, capsys):
+    argv = [str(finished_run) if part == "RUN" else part for part in command] + ["--seed", seed]
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert "--seed" in err[-1] and "integer >= 0" in err[-1]
+    assert "--seed" in err[-1] and "from 0 to 4294967295" in err[-1]
+
+
+def test_seeds_and_integer_options_out_of_range_are_one_line_exit_2_with_nothing_created(finished_run, tmp_path,
+                                                                                         capsys):
+    """Every seed (flags, config fields, sweep grids) and every integer reaches numpy and torch
+    only inside its range: 0 .. 2**32 - 1 for seeds, >= 1 for counts, 64 bits for any integer."""
+    out = tmp_path / "out"
+    argparse_cases = [
+        (["pretrain", "--agent", "fb", *MAZE, "--seeds", "0,4294967296", "--run-dir", str(out / "{seed}")],
+         "--seeds"),
+        (["report", str(finished_run), "--out", str(out), "--bootstrap-seed", "-1"], "--bootstrap-seed"),
+        (["report", str(finished_run), "--out", str(out), "--bootstrap-samples", "0"], "--bootstrap-samples"),
+        (["video", str(finished_run), "--task", "point_mass_maze_reach_top_left", "--out", str(out / "v.gif"),
+          "--width", "0"], "--width"),
+    ]
+    for argv, flag in argparse_cases:
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 2
+        assert flag in capsys.readouterr().err.strip().splitlines()[-1], argv
+    config_cases = [
+        (["pretrain", "--agent", "fb", *MAZE, "--seed", "4294967296", "--run-dir", str(out)],
+         "--seed 4294967296 is out of range: it must be >= 0 and <= 4294967295"),
+        (["pretrain", "--agent", "fb", *MAZE, "--fb.hidden-dim", str(2**64), "--run-dir", str(out)],
+         "must fit a 64-bit integer"),
+        (["finetune", str(finished_run), "--task", "point_mass_maze_reach_top_left", "--finetune.eval-every",
+          str(2**70)], "--finetune.eval-every 1180591620717411303424 is out of range: it must fit a 64-bit integer"),
+    ]
+    before = sorted(p.relative_to(finished_run) for p in finished_run.rglob("*"))
+    for argv, message in config_cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], (argv, err)
+    assert not out.exists()
+    assert sorted(p.relative_to(finished_run) for p in finished_run.rglob("*")) == before
 
 
 def test_an_n_step_longer_than_the_episodes_is_one_line_and_creates_nothing(tmp_path, capsys):

@@ -21,6 +21,12 @@ from dvfb.errors import ConfigError
 
 T = TypeVar("T")
 
+# The seeds numpy's and torch's generators accept: 0 .. 2**32 - 1 (numpy's legacy seeding, which
+# environments use, refuses larger ones).
+SEED_MAX = 2**32 - 1
+# Every integer field fits a 64-bit integer, so that no value overflows inside torch or numpy.
+INT_RANGE = (-(2**63), 2**63 - 1)
+
 
 def param(default: Any, help: str, choices: tuple | None = None, *, at_least: float | None = None,
           above: float | None = None, at_most: float | None = None) -> Any:
@@ -41,6 +47,11 @@ def param(default: Any, help: str, choices: tuple | None = None, *, at_least: fl
     return dataclasses.field(default=default, metadata=metadata)
 
 
+def seed_param(default: int, help: str) -> Any:
+    """A seed field: an integer in 0 .. :data:`SEED_MAX`."""
+    return param(default, help, at_least=0, at_most=SEED_MAX)
+
+
 def flag_name(path: str) -> str:
     """The command-line flag of a config field path: sections keep their underscores, the field name
     gets dashes (``fb.batch_size`` -> ``--fb.batch-size``, ``icm_apt.rep_dim`` -> ``--icm_apt.rep-dim``)."""
@@ -48,14 +59,18 @@ def flag_name(path: str) -> str:
     return "--" + ".".join([*sections, name.replace("_", "-")])
 
 
+def _number(x: float) -> str:
+    return str(x) if isinstance(x, int) else f"{x:g}"
+
+
 def _range_text(bounds: dict) -> str:
     parts = []
     if "at_least" in bounds:
-        parts.append(f">= {bounds['at_least']:g}")
+        parts.append(f">= {_number(bounds['at_least'])}")
     if "above" in bounds:
-        parts.append(f"> {bounds['above']:g}")
+        parts.append(f"> {_number(bounds['above'])}")
     if "at_most" in bounds:
-        parts.append(f"<= {bounds['at_most']:g}")
+        parts.append(f"<= {_number(bounds['at_most'])}")
     return " and ".join(parts)
 
 
@@ -69,6 +84,8 @@ def _check_value(path: str, value: Any, metadata: Any) -> None:
             continue
         if isinstance(item, float) and not math.isfinite(item):
             raise ConfigError(f"{flag_name(path)} {item!r} is not a finite number")
+        if isinstance(item, int) and not INT_RANGE[0] <= item <= INT_RANGE[1]:
+            raise ConfigError(f"{flag_name(path)} {item} is out of range: it must fit a 64-bit integer")
         bounds = metadata.get("bounds")
         if bounds and (("at_least" in bounds and item < bounds["at_least"])
                        or ("above" in bounds and item <= bounds["above"])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, protocol_overrides
+from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, integer, protocol_overrides
 
 def cmd_analyze_value(args: argparse.Namespace) -> int:
     """Skill value vs return (paper §4, Fig. 3b)."""
@@ -53,10 +53,10 @@ def register(sub, agent: str) -> None:
                     "per return bin. Writes RUN/analysis/value_<task>.{csv,png,json}.")
     p.add_argument("run", help="pre-training run directory")
     p.add_argument("--task", required=True, help="task name of the run's domain")
-    p.add_argument("--skills", type=int, default=16, help="skills K, z_r included (default: %(default)s)")
-    p.add_argument("--episodes-per-skill", type=int, default=2, help="episodes per skill (default: %(default)s)")
-    p.add_argument("--bins", type=int, default=4, help="equal-count return bins (default: %(default)s)")
-    p.add_argument("--max-steps", type=int, default=None, help="cut episodes after this many steps (default: full)")
+    p.add_argument("--skills", type=integer(1), default=16, help="skills K, z_r included (default: %(default)s)")
+    p.add_argument("--episodes-per-skill", type=integer(1), default=2, help="episodes per skill (default: %(default)s)")
+    p.add_argument("--bins", type=integer(1), default=4, help="equal-count return bins (default: %(default)s)")
+    p.add_argument("--max-steps", type=integer(1), default=None, help="cut episodes after this many steps (default: full)")
     add_snapshot_and_seed(p)
     p.add_argument("--overwrite", action="store_true", help="replace existing analysis files")
     add_protocol_arguments(p, "inference")
@@ -71,9 +71,9 @@ def register(sub, agent: str) -> None:
                     "0.25 m, point_mass_maze (x, y) 0.02. Writes RUN/analysis/exploration.{png,json} and "
                     "exploration_positions.npz.")
     p.add_argument("run", help="pre-training run directory")
-    p.add_argument("--skills", type=int, default=10, help="skills K drawn from the prior (default: %(default)s)")
-    p.add_argument("--repeats", type=int, default=3, help="runs R per skill (default: %(default)s)")
-    p.add_argument("--steps", type=int, default=None,
+    p.add_argument("--skills", type=integer(1), default=10, help="skills K drawn from the prior (default: %(default)s)")
+    p.add_argument("--repeats", type=integer(1), default=3, help="runs R per skill (default: %(default)s)")
+    p.add_argument("--steps", type=integer(1), default=None,
                    help="steps per run, at most the episode length (default: one episode: 1000, Meta-World 250)")
     p.add_argument("--actions", default="rollout", choices=("rollout", "mean"),
                    help="rollout samples (sigma 0.2, as in pre-training) or mean actions (default: %(default)s)")

@@ -6,11 +6,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from dvfb.config import add_arguments, merge, overrides_from_args
+from dvfb.config import INT_RANGE, SEED_MAX, add_arguments, merge, overrides_from_args
 from dvfb.errors import ConfigError
 
 DEFAULT_PRESET = "small"
@@ -82,19 +83,34 @@ def protocol_overrides(args: argparse.Namespace, kind: str) -> dict:
 
 def add_snapshot_and_seed(p: argparse.ArgumentParser, seed_what: str = "seed") -> None:
     """--snapshot and --seed of the commands that load a pre-trained run's agent."""
-    p.add_argument("--snapshot", type=int, default=None, help="snapshot frames (default: the latest)")
+    p.add_argument("--snapshot", type=integer(0), default=None, help="snapshot frames (default: the latest)")
     p.add_argument("--seed", type=seed_value, default=None, help=f"{seed_what} (default: the run's seed)")
 
 
 def seed_value(text: str) -> int:
-    """A seed: an integer >= 0 (argparse names the flag when this raises)."""
+    """A seed: an integer in 0 .. 2**32 - 1, what numpy and torch accept (argparse names the flag
+    when this raises)."""
     value = int(text)
-    if value < 0:
+    if not 0 <= value <= SEED_MAX:
         raise ValueError(text)
     return value
 
 
-seed_value.__name__ = "seed (an integer >= 0)"  # how argparse names the type in its one-line error
+seed_value.__name__ = f"seed (an integer from 0 to {SEED_MAX})"  # how argparse names the type in its error
+
+
+def integer(minimum: int = 1, maximum: int = INT_RANGE[1]) -> Callable[[str], int]:
+    """An argparse type: an integer in ``minimum .. maximum``; argparse's one-line error names the
+    flag, the value and the range."""
+    def parse(text: str) -> int:
+        value = int(text)
+        if not minimum <= value <= maximum:
+            raise ValueError(text)
+        return value
+
+    parse.__name__ = (f"integer >= {minimum}" if maximum == INT_RANGE[1]
+                      else f"integer from {minimum} to {maximum}")
+    return parse
 
 
 def seed_list(text: str) -> list[int]:
@@ -105,7 +121,7 @@ def seed_list(text: str) -> list[int]:
     return seeds
 
 
-seed_list.__name__ = "seeds (comma-separated integers >= 0)"
+seed_list.__name__ = f"seeds (comma-separated integers from 0 to {SEED_MAX})"
 
 SEED_PLACEHOLDER = "{seed}"
 

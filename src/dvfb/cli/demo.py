@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dvfb.cli.common import progress_flag
+from dvfb.cli.common import integer, progress_flag
 from dvfb.errors import ConfigError
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -82,11 +82,11 @@ def register(sub, agent: str) -> None:
                                    "against a uniform-random policy, a GIF of one task, then a short live "
                                    "pre-training on the small CPU preset.")
     p.add_argument("--out-dir", default="demo", help="(default: %(default)s; replaced on every demo)")
-    p.add_argument("--frames", type=int, default=3000, help="live pre-training frames (default: %(default)s)")
-    p.add_argument("--inference-steps", type=int, default=4000,
+    p.add_argument("--frames", type=integer(1), default=3000, help="live pre-training frames (default: %(default)s)")
+    p.add_argument("--inference-steps", type=integer(1), default=4000,
                    help="reward-labelled steps per task (default: %(default)s)")
-    p.add_argument("--eval-episodes", type=int, default=2, help="evaluation episodes per task (default: %(default)s)")
+    p.add_argument("--eval-episodes", type=integer(1), default=2, help="evaluation episodes per task (default: %(default)s)")
     p.add_argument("--gif-task", default="walker_walk", help="task of the GIF (default: %(default)s)")
-    p.add_argument("--gif-steps", type=int, default=400, help="steps in the GIF (default: %(default)s)")
+    p.add_argument("--gif-steps", type=integer(1), default=400, help="steps in the GIF (default: %(default)s)")
     progress_flag(p)
     p.set_defaults(func=cmd_demo)

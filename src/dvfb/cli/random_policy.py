@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from dvfb.cli.common import seed_value
+from dvfb.cli.common import integer, seed_value
 from dvfb.errors import ConfigError
 
 
@@ -17,8 +17,6 @@ def cmd_random_policy(args: argparse.Namespace) -> int:
     from dvfb.workflows.zeroshot import random_policy_evaluation
 
     envs.check_domain(args.domain)
-    if args.episodes < 1:
-        raise ConfigError(f"--episodes must be at least 1, got {args.episodes}")
     output = Path(args.output) if args.output else None
     if output is not None and output.is_dir():
         raise ConfigError(f"--output {output} is a directory; give a file name (e.g. {output / 'random.json'})")
@@ -41,7 +39,7 @@ def register(sub, agent: str) -> None:
     p = sub.add_parser("random-policy", help="returns of a uniform-random policy on a domain's tasks",
                        description="Evaluate a uniform-random policy on every task of a domain.")
     p.add_argument("--domain", required=True, help="domain name")
-    p.add_argument("--episodes", type=int, default=10, help="episodes per task (default: %(default)s)")
+    p.add_argument("--episodes", type=integer(1), default=10, help="episodes per task (default: %(default)s)")
     p.add_argument("--seed", type=seed_value, default=0, help="(default: %(default)s)")
     p.add_argument("--output", default=None, help="write the returns to this JSON file")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from dvfb.cli.common import Formatter
+from dvfb.cli.common import Formatter, integer, seed_value
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Tables 1, 2 and 6 of the paper and fine-tuning curves from run directories."""
@@ -60,9 +60,9 @@ def register(sub, agent: str) -> None:
                    help="scores of the aggregates: min-max (random 0, supervised 100), percent of the supervised "
                         "reference, percent of the URLB expert, or raw returns; auto: the first of minmax, "
                         "supervised, expert that covers every task (default: %(default)s)")
-    p.add_argument("--bootstrap-samples", type=int, default=BOOTSTRAP_SAMPLES,
+    p.add_argument("--bootstrap-samples", type=integer(1), default=BOOTSTRAP_SAMPLES,
                    help="resamples of the stratified bootstrap (default: %(default)s)")
-    p.add_argument("--bootstrap-seed", type=int, default=0, help="seed of the bootstrap (default: %(default)s)")
+    p.add_argument("--bootstrap-seed", type=seed_value, default=0, help="seed of the bootstrap (default: %(default)s)")
     p.add_argument("--confidence", type=float, default=CONFIDENCE, help="level of the intervals (default: %(default)s)")
     p.add_argument("--curve-band", default="ci", choices=("ci", "std", "se"),
                    help="band of the fine-tuning curves: bootstrap interval of the mean (3+ seeds), ± std or "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, protocol_overrides
+from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, integer, protocol_overrides
 
 def cmd_video(args: argparse.Namespace) -> int:
     """A video of zero-shot evaluation episodes."""
@@ -30,12 +30,12 @@ def register(sub, agent: str) -> None:
                     "libosmesa6.")
     p.add_argument("run", help="pre-training run directory")
     p.add_argument("--task", required=True, help="task name of the run's domain")
-    p.add_argument("--episodes", type=int, default=1, help="episodes (default: %(default)s)")
+    p.add_argument("--episodes", type=integer(1), default=1, help="episodes (default: %(default)s)")
     p.add_argument("--out", default=None, help="FILE.gif or FILE.mp4 (default: RUN/analysis/video_<task>.gif)")
-    p.add_argument("--max-steps", type=int, default=None, help="cut episodes after this many steps (default: full)")
-    p.add_argument("--frame-skip", type=int, default=2, help="keep every k-th frame (default: %(default)s)")
-    p.add_argument("--height", type=int, default=240, help="(default: %(default)s)")
-    p.add_argument("--width", type=int, default=320, help="(default: %(default)s)")
+    p.add_argument("--max-steps", type=integer(1), default=None, help="cut episodes after this many steps (default: full)")
+    p.add_argument("--frame-skip", type=integer(1), default=2, help="keep every k-th frame (default: %(default)s)")
+    p.add_argument("--height", type=integer(1), default=240, help="(default: %(default)s)")
+    p.add_argument("--width", type=integer(1), default=320, help="(default: %(default)s)")
     p.add_argument("--camera", default=None, help="camera name or id (default: a per-domain view)")
     p.add_argument("--infer", action="store_true", help="infer z_r anew even if a zero-shot result exists")
     add_snapshot_and_seed(p)

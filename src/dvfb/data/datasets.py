@@ -30,11 +30,22 @@ The physics vector is the environment's ``physics_state()`` (dvfb.envs): MuJoCo'
 * :func:`read_dataset` loads a dataset into a :class:`~dvfb.data.buffer.ReplayBuffer` for offline
   training. Any unreadable, truncated or inconsistent episode file is an error naming the file:
   a dataset is read whole or not at all.
+
+**Identity.** ``dataset.json`` records the SHA-256 of every episode file as it was written
+(``digests``), and :attr:`DatasetInfo.identity` digests those: two datasets with the same files
+of the same contents have the same identity, a re-export with the same names and shapes but other
+contents does not. Every read checks each file's bytes against its recorded digest (the bytes are
+read anyway, so the check costs one hash), so a run that recorded the identity of its data can
+refuse other data with one line naming the file (docs/methods.md, "Datasets"). Datasets written
+before dvfb recorded digests have none; they are read as before, and the runs made from them are
+compared by their file names.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import io
 import re
 import shutil
 from collections.abc import Callable, Iterable
@@ -79,6 +90,9 @@ class DatasetInfo:
     transitions: int
     files: list[str]  # the episode files in buffer/, oldest first
     relabelled_from: str | None = None
+    # SHA-256 of each episode file's bytes, by name (module docstring, "Identity"); None: written
+    # by a dvfb that did not record them.
+    digests: dict[str, str] | None = None
     dvfb_version: str = __version__
     format: int = DATASET_FORMAT
     created: str = field(default_factory=lambda: datetime.now(timezone.utc).isoformat(timespec="seconds"))
@@ -87,6 +101,42 @@ class DatasetInfo:
     def lengths(self) -> list[int]:
         """Steps of each episode file (from its name)."""
         return [int(_EPISODE_NAME.fullmatch(name).group(2)) for name in self.files]
+
+    @property
+    def identity(self) -> str | None:
+        """The digest of the dataset's contents: of its files' names and digests, in order (None
+        when ``dataset.json`` records no digests)."""
+        if self.digests is None:
+            return None
+        text = "\n".join(f"{name} {self.digests[name]}" for name in self.files)
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    def fingerprint(self, path: str | Path) -> dict:
+        """What a run records about the data it trained on, to refuse other data later
+        (:func:`check_same_data`)."""
+        return {"path": str(Path(path).resolve()), "episodes": self.episodes, "transitions": self.transitions,
+                "files": list(self.files), "identity": self.identity, "digests": self.digests}
+
+
+def check_same_data(recorded: dict, info: DatasetInfo, path: str | Path, what: str) -> None:
+    """ConfigError (one line naming the first file that differs) unless ``info`` holds the data that
+    ``recorded`` (a :meth:`DatasetInfo.fingerprint`) describes: the same files with the same
+    digests, or, where either side has no digests (written before dvfb recorded them), the same
+    file names."""
+    now = info.fingerprint(path)
+    if recorded.get("identity") is not None and now["identity"] is not None:
+        if recorded["identity"] == now["identity"]:
+            return
+        old, new = recorded.get("digests") or {}, now["digests"]
+        changed = [n for n in now["files"] if old.get(n) != new.get(n)] + [n for n in old if n not in new]
+        first = changed[0] if changed else INFO_FILE
+        raise ConfigError(f"{what} was made from other data than {path} holds now: {Path(path) / EPISODES_DIR / first} "
+                          f"differs from the file it was made from ({len(changed)} of {len(now['files'])} files differ)")
+    if recorded.get("identity") is not None and now["identity"] is None:
+        raise ConfigError(f"{what} was made from a dataset whose files had recorded digests, but {Path(path) / INFO_FILE} "
+                          "records none: it is not the data the run was made from")
+    if recorded.get("files") != now["files"]:
+        raise ConfigError(f"{what} was made from other data than {path} holds now (its episode files differ)")
 
 
 def episode_file_name(index: int, steps: int) -> str:
@@ -119,6 +169,13 @@ def read_info(path: str | Path) -> DatasetInfo:
     if bad or len(info.files) != info.episodes or sum(info.lengths) != info.transitions:
         raise ConfigError(f"{info_path} is inconsistent: {info.episodes} episodes and {info.transitions} transitions, "
                           f"but it lists {len(info.files)} files of {sum(info.lengths) if not bad else '?'} steps")
+    for name, steps in zip(info.files, info.lengths):
+        if not 0 < steps <= info.episode_length:
+            raise ConfigError(f"episode file {path / EPISODES_DIR / name} holds {steps} steps; an episode of "
+                              f"{info.domain} has 1 to {info.episode_length} (listed in {info_path})")
+    if info.digests is not None and (not isinstance(info.digests, dict) or set(info.digests) != set(info.files)
+                                     or not all(isinstance(d, str) for d in info.digests.values())):
+        raise ConfigError(f"{info_path} is corrupt: its digests do not name exactly the files it lists")
     return info
 
 
@@ -145,14 +202,19 @@ def _problem(exc: BaseException) -> str:
 
 def load_episode(path: Path, info: DatasetInfo) -> dict[str, np.ndarray]:
     """The arrays of one episode file, every key checked against ``info`` (present, dtype, shape,
-    the step count of the file's name, finite values); ConfigError naming the file otherwise."""
+    the step count of the file's name, finite values) and its bytes against the digest
+    ``dataset.json`` recorded; ConfigError naming the file otherwise."""
     steps = int(_EPISODE_NAME.fullmatch(path.name).group(2))
     widths = {"observation": info.obs_dim, "action": info.action_dim, "reward": 1, "discount": 1,
               PHYSICS_COLUMN: info.physics_width}
     if not path.is_file():
         raise ConfigError(f"episode file {path} is missing (listed in {INFO_FILE})")
     try:
-        with np.load(path, allow_pickle=False) as file:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"episode file {path} cannot be read ({_problem(exc)})") from exc
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as file:
             missing = sorted(set(KEYS) - set(file.files))
             if missing:
                 raise ConfigError(f"episode file {path} lacks the key(s) {', '.join(missing)}")
@@ -168,6 +230,10 @@ def load_episode(path: Path, info: DatasetInfo) -> dict[str, np.ndarray]:
                               f"{np.dtype(KEYS[key])} of shape ({steps + 1}, {widths[key]}) for its {steps} steps")
         if not np.isfinite(array).all():
             raise ConfigError(f"episode file {path}: {key} holds non-finite values")
+    # Last, so that a damaged file is named for its damage; a well-formed file of other contents
+    # (a re-export under the same names) is named here.
+    if info.digests is not None and hashlib.sha256(data).hexdigest() != info.digests[path.name]:
+        raise ConfigError(f"episode file {path} is not the file {INFO_FILE} recorded: its contents changed")
     return arrays
 
 
@@ -205,18 +271,22 @@ def write_dataset(out: str | Path, info: DatasetInfo, episodes: Iterable[tuple[i
     check_output_dir(out)
     created = not out.exists()
     bar = _bar(progress, info.transitions, desc)
-    files, transitions = [], 0
+    files, digests, transitions = [], {}, 0
     try:
         (out / EPISODES_DIR).mkdir(parents=True)
         for index, arrays in episodes:
             steps = len(arrays["reward"]) - 1
             name = episode_file_name(index, steps)
+            buffer = io.BytesIO()
+            np.savez_compressed(buffer, **arrays)
+            data = buffer.getvalue()
             with open(out / EPISODES_DIR / name, "wb") as file:
-                np.savez_compressed(file, **arrays)
+                file.write(data)
             files.append(name)
+            digests[name] = hashlib.sha256(data).hexdigest()
             transitions += steps
             bar.update(steps)
-        info = dataclasses.replace(info, files=files, episodes=len(files), transitions=transitions)
+        info = dataclasses.replace(info, files=files, episodes=len(files), transitions=transitions, digests=digests)
         write_json_atomic(out / INFO_FILE, dataclasses.asdict(info))
     except BaseException:
         shutil.rmtree(out if created else out / EPISODES_DIR, ignore_errors=True)
@@ -342,5 +412,5 @@ def describe(info: DatasetInfo, path: Path) -> str:
             f"(rewards of {info.task}; physics {info.physics_width} values a row)")
 
 
-__all__ = ["DATASET_FORMAT", "DatasetInfo", "describe", "load_episode", "physics_slice", "read_dataset", "read_info",
+__all__ = ["DATASET_FORMAT", "DatasetInfo", "check_same_data", "describe", "load_episode", "physics_slice", "read_dataset", "read_info",
            "relabel", "write_dataset"]

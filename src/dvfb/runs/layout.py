@@ -9,6 +9,7 @@ A pre-training run (:class:`PretrainRun`)::
     RUN/checkpoints/                resume checkpoints and their ``latest`` pointer
     RUN/snapshots/snapshot_<F>.pt   the agent after F frames (dvfb.runs.snapshots)
     RUN/pretrain_summary.json       written when it finishes (PretrainSummary)
+    RUN/trained_on.json             an offline run's dataset: its path, files and content digests
     RUN/zeroshot/<task>.json        a zero-shot result of the final snapshot; <task>@<F>.json of
                                     an earlier one (ZeroShotResult)
     RUN/finetune/<name>/            its fine-tuning runs
@@ -32,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from dvfb.errors import ConfigError, RunDirError
-from dvfb.files import read_json
+from dvfb.files import read_json, write_json_atomic
 from dvfb.runs.checkpoints import latest_checkpoint, list_snapshots, load_checkpoint
 from dvfb.runs.directory import CONFIG_FILE, META_FILE, RunDir
 from dvfb.runs.migrations import kind_from_config
@@ -120,6 +121,24 @@ class PretrainRun(RunDir):
 
     def write_summary(self, summary: PretrainSummary) -> None:
         summary.write(self.summary_path)
+
+    # An offline run's data ---------------------------------------------------------------------------
+    @property
+    def trained_on_path(self) -> Path:
+        return self.path / "trained_on.json"
+
+    def trained_on(self) -> dict | None:
+        """The fingerprint of the dataset an offline run trained on (``DatasetInfo.fingerprint``);
+        None for an online run, or one made before dvfb recorded it."""
+        if not self.trained_on_path.is_file():
+            return None
+        data = read_json(self.trained_on_path, RunDirError)
+        if not isinstance(data, dict):
+            raise RunDirError(f"{self.trained_on_path} is corrupt: not a JSON object")
+        return data
+
+    def write_trained_on(self, fingerprint: dict) -> None:
+        write_json_atomic(self.trained_on_path, fingerprint)
 
     # Snapshots -----------------------------------------------------------------------------------
     def snapshot_frames(self) -> list[int]:

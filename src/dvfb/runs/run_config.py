@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from dvfb.agents import get_spec
-from dvfb.config import from_dict, param, require_updates
+from dvfb.config import from_dict, param, require_updates, seed_param
 from dvfb.data import ReplaySamplingConfig
 from dvfb.errors import ConfigError
 from dvfb.execution import DEVICES, PerfConfig
@@ -48,7 +48,7 @@ class PretrainConfig:
     domain: str = param("walker", "Domain; pre-training uses its reward-free task (docs/tasks.md §5).")
     preset: str = param("paper", "Preset the config was built from.", PRESETS)
     frames: int = param(2_000_000, "Pre-training environment steps.", at_least=1)
-    seed: int = param(0, "Seed of the environment, the networks and the sampling.", at_least=0)
+    seed: int = seed_param(0, "Seed of the environment, the networks and the sampling.")
     device: str = param("auto", "Torch device: auto picks cuda when available.", DEVICES)
     torch_threads: int = param(0, "torch.set_num_threads; 0 keeps torch's default.", at_least=0)
     seed_frames: int = param(4000, "Uniform-action steps before the first update.", at_least=0)
@@ -145,7 +145,7 @@ class FinetuneRunConfig:
     domain: str = param("walker", "Domain of the pre-training run.")
     task: str = param("walker_walk", "Downstream task.")
     snapshot: int = param(0, "Pre-training snapshot (frames) the agent starts from.")
-    seed: int = param(0, "Seed of the task environment and the fine-tuning randomness.")
+    seed: int = seed_param(0, "Seed of the task environment and the fine-tuning randomness.")
     device: str = param("auto", "Torch device.")
 
 

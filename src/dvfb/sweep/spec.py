@@ -24,8 +24,8 @@ from typing import Any
 
 from dvfb import envs
 from dvfb.agents import agent_names, get_spec
-from dvfb.config import (canonical_key, field_type, flag_name, format_value, from_dict, is_list_type, merge, param,
-                         parse_text, to_dict)
+from dvfb.config import (SEED_MAX, canonical_key, field_type, flag_name, format_value, from_dict, is_list_type, merge,
+                         param, parse_text, to_dict)
 from dvfb.errors import ConfigError
 from dvfb.runs import read_json
 from dvfb.runs.presets import preset_config
@@ -81,7 +81,7 @@ class SweepConfig:
 
     agents: list[str] = param(["dvfb", "fb"], "Methods (dvfb agents).")
     domains: list[str] = param(["walker"], "Domains (dvfb tasks).")
-    seeds: list[int] = param([0, 1, 2], "Seeds.")
+    seeds: list[int] = param([0, 1, 2], "Seeds.", at_least=0, at_most=SEED_MAX)
     preset: str = param("small", "Base configuration of every cell.", ("small", "paper", "code"))
     phases: list[str] = param(["pretrain", "zeroshot"], "Phases: pretrain, zeroshot, finetune (pretrain always).")
     zeroshot_tasks: list[str] = param(["all"], "Zero-shot tasks; all = every task of the cell's domain.")

@@ -42,7 +42,8 @@ class ResumeCheckpoints:
       if need be) unless one was just written, then :class:`~dvfb.errors.RunInterrupted`
       (:meth:`after_step`).
 
-    Every checkpoint flushes the metric window first, so a non-finite loss is never checkpointed.
+    Every checkpoint checks the metric window first (:meth:`MetricWindow.check`), so a non-finite
+    loss is never checkpointed; the window's rows stay in it, and the checkpoint saves them.
     ``save(mid_episode)`` writes one; ``last`` is the step of the newest (None: none yet), which
     failures report (:func:`reported_failures`). Use as ``with checkpoints: <loop>``.
     """
@@ -63,7 +64,7 @@ class ResumeCheckpoints:
         return self._guard.__exit__(*exc_info)
 
     def _write(self, step: int, mid_episode: bool) -> None:
-        self.window.flush()
+        self.window.check()
         self.save(mid_episode)
         self.last = step
 
@@ -82,5 +83,5 @@ class ResumeCheckpoints:
         if self.last != step:
             self._write(step, mid_episode)
         else:
-            self.window.flush()
+            self.window.check()
         raise interrupted(self.stop, self.what, step, self.total, self.run_path)

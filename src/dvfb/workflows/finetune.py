@@ -180,7 +180,7 @@ def _run(members: list[_Member], task: str, resume: bool, overwrite: bool, progr
     try:
         with checkpoints:
             rollout(group.lanes, group.policy, observers, start=group.step, stop=cfg.frames)
-            group.window.flush()
+            group.window.check()
     finally:
         bar.close()
         group.close_logs()

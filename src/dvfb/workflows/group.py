@@ -65,6 +65,7 @@ class Group:
             self.window = MetricWindow(self.learner.nonfinite_hint, lambda: list(self.live), self.stop)
             for session in sessions:
                 session.window = self.window.member_window(session)
+                session.window.load_state(session.window_state)
         self.lanes: list[Lane] = [s.lane for s in sessions if s.lane is not None]
         self.policy = GroupPolicy(self, uniform)
 

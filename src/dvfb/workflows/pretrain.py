@@ -42,6 +42,7 @@ from dvfb import envs
 from dvfb.agents import get_spec, make_agent
 from dvfb.config import replace, to_dict
 from dvfb.data import ReplayBuffer, physics_columns, read_dataset, read_info
+from dvfb.data.datasets import check_same_data
 from dvfb.errors import CheckpointError, ConfigError
 from dvfb.nets.members import member_slice
 from dvfb.runs import RunDir, RunLock, save_snapshot
@@ -150,7 +151,7 @@ def _run(configs, paths, parts, resume, overwrite, command, dataset, dataset_inf
         with checkpoints:
             step = rollout(group.lanes, group.policy if group.lanes else None, observers, start=group.step,
                            stop=base.frames)
-            group.window.flush()
+            group.window.check()
             if parts[0][4]:  # a dataset's run: the final checkpoint holds every finished episode
                 boundary = all(lane.state.episode_start for lane in group.lanes)
                 checkpoints.ensure(step, mid_episode=not boundary)
@@ -188,6 +189,12 @@ def _checked(config: PretrainConfig, run_paths: list[Path], resume: bool, overwr
         if dataset_info.domain != config.domain:
             raise ConfigError(f"--dataset {config.dataset} holds {dataset_info.domain} data; this run is on "
                               f"{config.domain} (pass --domain {dataset_info.domain})")
+        for run_path in run_paths if resume else ():
+            # Cheap, before any work: the data each run recorded when it started (runs made before
+            # dvfb recorded it are checked against their checkpoint's file names in begin()).
+            recorded = PretrainRun(run_path, config).trained_on() if Path(run_path).is_dir() else None
+            if recorded is not None:
+                check_same_data(recorded, dataset_info, config.dataset, f"cannot resume {run_path}: it")
         # Offline, every step of the loop is one update (docs/methods.md, "Offline training").
         config = replace(config, seed_frames=0, update_every=1)
     return config, trained_task, dataset_info
@@ -270,9 +277,10 @@ class PretrainSession(RunSession):
         self.offline = offline = self.dataset is not None
         # What an offline checkpoint records instead of the replay: which data it trained on.
         info = self.dataset_info
-        self.fingerprint = None if not offline else {
-            "path": str(Path(config.dataset).resolve()), "episodes": info.episodes,
-            "transitions": info.transitions, "files": list(info.files)}
+        self.fingerprint = info.fingerprint(config.dataset) if offline else None
+        if offline and state is not None:
+            # Resuming on other data than the run trained on would continue another experiment.
+            check_same_data(state.get("dataset", {}), info, config.dataset, f"cannot resume {self.run.path}: it")
         self.replay = self.dataset if offline else ReplayBuffer(
             config.replay_capacity, agent.obs_dim, agent.action_dim, agent.skill_dim,
             max_episode_length=self.episode_length, device=agent.device, sampler=config.replay.sampler(),
@@ -286,10 +294,7 @@ class PretrainSession(RunSession):
         if state is not None:
             try:
                 agent.load_training_state(migrate_training_state(config.agent, state["agent_state"]))
-                if offline:
-                    if state.get("dataset", {}).get("files") != self.fingerprint["files"]:
-                        raise ValueError(f"the run trained on other data than --dataset {config.dataset} now holds")
-                else:
+                if not offline:
                     self.replay.load_state_dict(state["replay"])
                 self.restore(state, episode)
             except (KeyError, TypeError, ValueError, RuntimeError) as exc:
@@ -298,6 +303,8 @@ class PretrainSession(RunSession):
             # Only now, with the checkpoint loaded, may the run's config change (a larger --frames).
             self.run.save_config(config)
             notify(f"[pretrain] resuming {self.run.path} from step {self.step} (of {config.frames})")
+        if offline:
+            self.run.write_trained_on(self.fingerprint)  # what an offline zero-shot checks its data against
         self.start_logging(self.resume, agent.nonfinite_hint)
         self.snapshots = set(config.snapshot_frames) | {config.frames}
 
@@ -329,7 +336,7 @@ class PretrainSession(RunSession):
             fps = (t - self.start_step) / max(time.time() - self.started, 1e-9)
             self.log_window(t, {"fps": fps})
         if t in self.snapshots:
-            self.window.flush()
+            self.window.check()  # no snapshot of a non-finite learner
             save_snapshot(self.run, self.snapshot(t), snapshot_name(t))
 
     def after_episode(self, t: int) -> None:

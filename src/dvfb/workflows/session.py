@@ -70,6 +70,7 @@ class RunSession:
     learner: Any = None
     logger: MetricsLogger
     window: Any
+    window_state: dict | None = None  # the metric rows a resumed checkpoint carried (restore)
 
     # Creating or opening -------------------------------------------------------------------------
     def open(self, run_cls, path, resume: bool, overwrite: bool, command=None) -> None:
@@ -144,12 +145,16 @@ class RunSession:
             episode.episode = state.get("episode", 0)
         self.step = state["step"]
         self.last_checkpoint = self.step
+        # The metric rows of the window the checkpoint cut (loaded by start_logging, or by a group
+        # into its member window), so that the next record equals an uninterrupted run's.
+        self.window_state = state.get("metric_window")
 
     def checkpoint_record(self, mid_episode: bool) -> dict:
         """The part of a resume checkpoint every run writes (see :meth:`restore`); the kind of run adds
         :meth:`extra_record`."""
         record = {"kind": self.kind, "format": RESUME_FORMAT, "step": self.step, "generator": self.generator.get_state(),
-                  "rng": rng_state(self.rng), "episode": 0 if self.lane is None else self.lane.state.episode}
+                  "rng": rng_state(self.rng), "episode": 0 if self.lane is None else self.lane.state.episode,
+                  "metric_window": self.window.state()}
         if self.lane is not None:
             episode = self.lane.state
             record["env_rng"] = self.lane.env.unwrapped.get_rng_state()
@@ -186,6 +191,8 @@ class RunSession:
         # Records up to the checkpointed step belong to the restored state; later ones are redone.
         self.logger = MetricsLogger(self.run, purge_step=self.step + 1 if resumed else None)
         self.window = MetricWindow(hint)
+        if resumed:
+            self.window.load_state(self.window_state)
         self.started = time.time()
         self.start_step = self.step
 

@@ -30,6 +30,7 @@ from dvfb import envs
 from dvfb.agents import Model, get_spec
 from dvfb.config import merge, to_dict
 from dvfb.data import PHYSICS_COLUMN, ReplayBuffer, read_dataset, read_info
+from dvfb.data.datasets import check_same_data
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.nets.members import stack_agents
 from dvfb.protocols import SKILL_SOURCES, ZeroShotProtocol, zero_shot_protocol
@@ -109,10 +110,12 @@ def infer_from_reward_fn(model: Model, run: PretrainRun, reward_fn: Callable, pr
     return skill, {**info, "states": source}
 
 
-def infer_from_dataset(model: Model, config: PretrainConfig, task: str, protocol: ZeroShotProtocol,
+def infer_from_dataset(model: Model, run: PretrainRun, task: str, protocol: ZeroShotProtocol,
                        dataset: str | Path | None) -> tuple[torch.Tensor, dict]:
     """The skill from a dataset's transitions with ``task``'s rewards recomputed from their physics
-    states (docs/methods.md, "Datasets"): ``dataset``, or the one the run trained on offline."""
+    states (docs/methods.md, "Datasets"): ``dataset``, or the one the run trained on offline, which
+    must still hold the data the run recorded."""
+    config = run.config
     path = dataset or config.dataset
     if not path:
         raise ConfigError("--skill-source dataset needs --dataset DIR (a dataset of the run's domain; an offline "
@@ -120,6 +123,9 @@ def infer_from_dataset(model: Model, config: PretrainConfig, task: str, protocol
     info = read_info(path)
     if info.domain != config.domain:
         raise ConfigError(f"dataset {path} holds {info.domain} data; the run is on {config.domain}")
+    recorded = run.trained_on()
+    if recorded is not None and Path(path).resolve() == Path(recorded.get("path", "")).resolve():
+        check_same_data(recorded, info, path, f"run {run.path}")
     buffer, _ = read_dataset(path, model.device, columns=(PHYSICS_COLUMN,))
     data = buffer.transitions()
     env = envs.make(task, seed=config.seed)
@@ -148,6 +154,12 @@ def zeroshot(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
     ``progress``: True shows a bar, False nothing, None a bar on a terminal and otherwise a line
     every ``DVFB_PROGRESS_SECONDS`` seconds.
     """
+    for option, value, source in (("--dataset", dataset, "dataset"), ("--reward-fn", reward_fn, "reward_fn"),
+                                  ("--goal", goal, "goal")):
+        if value is not None and skill_source != source:
+            # It would be ignored: say so rather than infer the skill from something else.
+            raise ConfigError(f"{option} is used only with --skill-source {source} (this command's source is "
+                              f"{skill_source!r}): add --skill-source {source} or leave out {option}")
     many = not isinstance(run_dir, (str, Path))
     run_paths = list(run_dir) if many else [run_dir]
     if not run_paths:
@@ -244,7 +256,7 @@ def task_skill(model: Model, run: PretrainRun, task: str, protocol: ZeroShotProt
         fn = load_reward_fn(reward_fn) if isinstance(reward_fn, str) else reward_fn
         return infer_from_reward_fn(model, run, fn, protocol, rng)
     if skill_source == "dataset":
-        return infer_from_dataset(model, config, task, protocol, dataset)
+        return infer_from_dataset(model, run, task, protocol, dataset)
     if goal is None:
         raise ConfigError("skill_source 'goal' needs a goal observation")
     return protocol.skill_from_goal(model, goal)
