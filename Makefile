@@ -23,14 +23,17 @@ $(STAMP): pyproject.toml
 demo: $(STAMP) gl-deps
 	$(VENV)/bin/dvfb demo
 
-# Two pytest-xdist workers; the SLURM tests stay together on one of them (tests/conftest.py).
-TEST_WORKERS ?= 2
+# pytest-xdist workers. The SLURM tests stay together on one worker (tests/conftest.py), which
+# mostly waits for the cluster, so the full suite takes a third worker on two cores; the fast tier
+# is all computation and takes one per core.
+TEST_WORKERS ?= 3
+FAST_WORKERS ?= 2
 test: $(STAMP) gl-deps
 	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
 
 # The development tier: everything but the SLURM cluster, the end-to-end pipelines and the slow tests.
 test-fast: $(STAMP) gl-deps
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup -m 'not slurm and not e2e and not slow'
+	$(PY) -m pytest -q -n $(FAST_WORKERS) --dist loadgroup -m 'not slurm and not e2e and not slow'
 
 # Software OpenGL (OSMesa) for the rendering tests of `dvfb video` (tests/test_analysis.py).
 # Installed from Debian's libosmesa6 when missing and we are root; otherwise the test says how.
