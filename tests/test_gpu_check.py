@@ -18,9 +18,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.mark.slow
 def test_the_gpu_check_runs_every_method_and_the_groups_on_the_cpu(tmp_path):
+    # One thread: the suite's other workers share the cores (OpenMP threads that wait for a busy
+    # core slow a run down many times over).
     output = tmp_path / "gpu_check.json"
     done = subprocess.run([sys.executable, str(ROOT / "bench" / "gpu_check.py"), "--device", "cpu", "--quick",
-                           "--output", str(output)], capture_output=True, text=True, timeout=900)
+                           "--threads", "1", "--output", str(output)], capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     report = json.loads(output.read_text())
     assert report["failed"] == [] and report["peak"]["gflops"] > 0
@@ -34,7 +36,7 @@ def test_the_gpu_check_runs_every_method_and_the_groups_on_the_cpu(tmp_path):
     skipped = {(row["variant"], row["error"]) for row in report["methods"] if row["status"] == "skipped"}
     assert ("cuda_graphs", "CUDA graphs exist on CUDA only") in skipped and ("compile", "--quick") in skipped
     for group in report["groups"]:
-        assert group["status"] == "ok" and group["members"] == 2 and group["frames"] == 1200, group
+        assert group["status"] == "ok" and group["members"] == 2 and group["frames"] == 800, group
         assert group["frames_per_s"] > 0 and group["member_updates_per_s"] > 0
         assert group["steady_frames_per_s"] > 0 and group["projection"]["hours"] > 0
     assert [g["agent"] for g in report["groups"]] == ["dvfb", "fb"]
