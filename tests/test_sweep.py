@@ -417,7 +417,11 @@ def requeued_by_slurm(sweep_dir: Path, cell: str, unit: str) -> bool:
 
 def release_requeued(job: str) -> None:
     """SLURM holds a requeued job for two minutes (Reason=BeginTime); release it at once, as an
-    administrator can, so that the tests do not wait."""
+    administrator can, so that the tests do not wait. Only once the node is idle: until the old
+    attempt's step has ended (srun waits up to 32 s for it), its credential is revoked, and a job
+    started in that window is killed as "non-startable" (seen on a loaded machine)."""
+    wait_until(lambda: subprocess.run(["sinfo", "-h", "-N", "-o", "%T"], capture_output=True, text=True
+                                      ).stdout.split() == ["idle"], "the node to be idle after the requeue")
     subprocess.run(["scontrol", "update", f"jobid={job}", "StartTime=now"], capture_output=True)
 
 
