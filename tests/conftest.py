@@ -12,6 +12,8 @@
   ``make test-fast`` leaves out ``slurm``, ``e2e`` and ``slow``.
 """
 
+import subprocess
+
 import pytest
 import torch
 
@@ -34,3 +36,16 @@ def pytest_collection_modifyitems(config, items):
     # The SLURM tests first: they are the longest chain of one worker, so it starts at once and the
     # other worker's share runs beside it (xdist hands out work in collection order).
     items.sort(key=lambda item: "slurm" not in item.keywords)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A real 500 KiB tmpfs mounted for the test (root only; a missing permission fails loudly)."""
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=500k", "tmpfs", str(mount)], capture_output=True,
+                          text=True)
+    if done.returncode != 0:
+        pytest.fail(f"the disk-error tests need a small tmpfs (run as root): mount said {done.stderr.strip()}")
+    yield mount
+    subprocess.run(["umount", "-l", str(mount)], check=True)

@@ -43,7 +43,8 @@ MAZE_TASK = "point_mass_maze_reach_top_left"
 
 
 def make_pretrain_run(path: Path, agent: str = "dvfb", domain: str = "walker", seed: int = 0,
-                      use_ce: bool = True, zeroshot: dict[str, float] | None = None) -> Path:
+                      use_ce: bool = True, zeroshot: dict[str, float] | None = None,
+                      snapshot_frames: int = 100_000) -> Path:
     config = preset_config("small", agent=agent, domain=domain, seed=seed)
     if not use_ce:
         config = merge(config, {"exploration": {"use_ce": False}})
@@ -52,7 +53,7 @@ def make_pretrain_run(path: Path, agent: str = "dvfb", domain: str = "walker", s
     for task, value in (zeroshot or {}).items():
         write_json_atomic(path / "zeroshot" / f"{task}.json", {
             "task": task, "domain": domain, "agent": agent, "preset": "small", "pretrain_seed": seed,
-            "seed": seed, "snapshot_frames": 100_000, "mean_return": value, "std_return": 0.0,
+            "seed": seed, "snapshot_frames": snapshot_frames, "mean_return": value, "std_return": 0.0,
             "returns": [value], "eval_episodes": 1, "z": [0.0] * 4})
     return path
 
@@ -243,6 +244,20 @@ def test_finetune_table_and_curves(tmp_path: Path):
     for name in ("finetune_walker_walk.png", "finetune_walker_run.png", "finetune_all.png"):
         assert_png_has_content(out / "curves" / name)
         assert f"curves/{name}" in text
+
+
+def test_numbers_from_different_pretraining_budgets_in_one_cell_are_noted(tmp_path: Path):
+    root = tmp_path / "runs"
+    make_pretrain_run(root / "dvfb_s0", seed=0, zeroshot={"walker_walk": 300.0})
+    make_pretrain_run(root / "dvfb_s1", seed=1, zeroshot={"walker_walk": 500.0}, snapshot_frames=200_000)
+    make_pretrain_run(root / "fb_s0", agent="fb", seed=0, zeroshot={"walker_walk": 100.0})
+    make_pretrain_run(root / "fb_s1", agent="fb", seed=1, zeroshot={"walker_walk": 200.0})
+    report = make_report([root], tmp_path / "out")
+    notes = [n for n in report.notes if "pre-training budgets" in n]
+    assert notes == ["Table 1: dvfb on walker averages runs of different pre-training budgets (1 number(s) from the "
+                     "snapshot at 100000 frames, 1 number(s) from the snapshot at 200000 frames); evaluate one "
+                     "snapshot (--snapshot) to compare like with like"]
+    assert notes[0] in (tmp_path / "out" / "report.md").read_text()
 
 
 def test_finetune_run_given_alone_takes_the_method_from_its_pretraining_run(tmp_path: Path):

@@ -5,6 +5,8 @@ online environments of every domain, damaged files and bad input. Real MuJoCo ph
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 import shutil
 from pathlib import Path
 
@@ -270,10 +272,35 @@ def test_a_damaged_episode_file_is_one_line_naming_it(dataset: Path, tmp_path: P
         read_dataset(copy)
     message = str(exc.value)
     assert "\n" not in message and ("episode_000009_1000.npz" if damage == "unlisted" else str(damaged)) in message
-    assert main(["dataset", "relabel", str(copy), "--task", MAZE, "--out", str(tmp_path / "out")]) == 2
+    nested = tmp_path / "new" / "parents" / "out"  # parents the relabel would create
+    assert main(["dataset", "relabel", str(copy), "--task", MAZE, "--out", str(nested)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and (damage == "unlisted" or str(damaged) in err)
-    assert not (tmp_path / "out").exists() or damage == "unlisted"
+    assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.slow
+def test_a_read_only_or_full_disk_is_one_line_and_leaves_nothing(run: Path, dataset: Path, small_disk: Path, capsys):
+    def fails(args, *words):
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and all(w in err for w in words), err
+
+    # Full: a few kilobytes free, less than one compressed episode.
+    ballast = small_disk / "ballast"
+    disk = os.statvfs(small_disk)
+    ballast.write_bytes(b"\0" * (disk.f_bavail * disk.f_frsize - 16 * 1024))
+    fails(["dataset", "export", str(run), "--out", str(small_disk / "a" / "ds")], "No space left on device",
+          str(small_disk / "a" / "ds"))
+    fails(["dataset", "relabel", str(dataset), "--task", MAZE, "--out", str(small_disk / "b")],
+          "No space left on device")
+    assert sorted(p.name for p in small_disk.iterdir()) == ["ballast"]
+    ballast.unlink()
+    subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], check=True)
+    fails(["dataset", "export", str(run), "--out", str(small_disk / "a" / "ds")], "Read-only file system")
+    fails(["dataset", "relabel", str(dataset), "--task", MAZE, "--out", str(small_disk / "b")],
+          "Read-only file system")
+    assert list(small_disk.iterdir()) == []
 
 
 def test_bad_input_is_one_line_and_writes_nothing(run: Path, dataset: Path, tmp_path: Path, capsys):

@@ -228,6 +228,8 @@ def test_bad_group_fine_tunings_are_one_line_and_create_nothing(tmp_path, fb_gro
         assert len(lines) == 1 and message in lines[0], done.stderr
     for path in [*aps, *fb_group]:
         assert not (path / "finetune" / "bad").exists()
+    for path in aps:  # not even the empty folder of fine-tuning runs
+        assert not (path / "finetune").exists()
 
 
 def test_a_member_in_use_is_refused_and_no_members_directory_is_left(fb_group):

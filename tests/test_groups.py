@@ -174,6 +174,30 @@ def test_a_group_refuses_an_existing_member_directory_before_creating_any(tmp_pa
     assert sorted(p.name for p in (tmp_path / "r_1").iterdir()) == before
 
 
+def _tree(root):
+    """Every path under ``root`` and its bytes; a lock file's holder pid aside (taking the lock is
+    how a command looks at a run safely)."""
+    return {str(p.relative_to(root)): p.read_bytes() if p.is_file() and p.name != ".lock" else None
+            for p in sorted(root.rglob("*"))}
+
+
+@pytest.mark.slow
+def test_a_group_resume_with_finished_and_unfinished_members_is_refused_and_changes_nothing(tmp_path):
+    template = str(tmp_path / "r_{seed}")
+    tiny = ["--fb.z-dim", "8", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
+            "--fb.batch-size", "32", "--update-every", "4", "--replay-capacity", "2000", "--torch-threads", "1"]
+    # Checkpoints come at episode ends: the maze's are every 1000 steps.
+    assert _cli("--seeds", "0,1", "--run-dir", template, "--frames", "1000", *tiny).returncode == 0
+    alone = _cli("--seed", "0", "--run-dir", str(tmp_path / "r_0"), "--frames", "2000", "--resume", *tiny)
+    assert alone.returncode == 0, alone.stderr
+    before = _tree(tmp_path)
+    done = _cli("--seeds", "0,1", "--run-dir", template, "--frames", "2000", "--resume", *tiny)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines()[-1] == ("dvfb pretrain: error: some members of the group have finished "
+                                                    "and others not: resume the others alone")
+    assert _tree(tmp_path) == before  # no TensorBoard file, no lock, no checkpoint
+
+
 @pytest.mark.slow
 def test_a_group_that_does_not_fit_is_refused_before_anything_is_built(tmp_path):
     from dvfb.data import ReplayBuffer

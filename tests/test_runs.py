@@ -156,6 +156,20 @@ def test_metrics_jsonl_and_tensorboard(tmp_path):
     assert events and all(e.stat().st_size > 0 for e in events)
 
 
+@pytest.mark.parametrize("tail", ['{"step": 5, "x": 5.', '{"step": 5, "x": 5.\n', '\0\0\0\n'])
+def test_the_last_record_for_a_status_passes_over_a_torn_line(tmp_path, tail):
+    from dvfb.runs import last_metric_record
+
+    run, _ = make_run(tmp_path)
+    assert last_metric_record(run) is None
+    with MetricsLogger(run, tensorboard=False) as logger:
+        for step in (250, 500, 1000):
+            logger.log(step, {"fps": 50.0})
+    with open(run.metrics_dir / "train.jsonl", "a") as file:
+        file.write(tail)
+    assert last_metric_record(run) == {"step": 1000, "fps": 50.0}
+
+
 def test_metrics_append_across_resume(tmp_path):
     run, _ = make_run(tmp_path)
     with MetricsLogger(run, tensorboard=False) as logger:

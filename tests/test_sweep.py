@@ -134,6 +134,9 @@ def test_bad_input_is_one_line_exit_2_and_creates_nothing(tmp_path, capsys, extr
     ("[slurm]\npretrain = 3", "SlurmConfig.pretrain: expected a mapping, got 3"),
     ("overrides = 3", "overrides must be a table"),
     ('[overrides]\nframes = "many"', "frames: expected int, got 'many'"),
+    ("[overrides]\nsnapshot_frames = 5", "--snapshot-frames takes a list of values"),
+    ("[overrides]\nfb = 3", "--fb is a section of options, not an option"),
+    ('[overrides.fb]\nz_dim = "x"', "z_dim: expected int, got 'x'"),
 ])
 def test_sweep_files_of_the_wrong_shape_are_one_line(tmp_path, capsys, body, message):
     sweep_file = tmp_path / "sweep.toml"
@@ -143,6 +146,15 @@ def test_sweep_files_of_the_wrong_shape_are_one_line(tmp_path, capsys, body, mes
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
     assert not sweep_dir.exists()
+
+
+def test_a_nested_table_of_overrides_is_its_dotted_options():
+    from dvfb.sweep.spec import SweepConfig, normalise_overrides
+
+    config = SweepConfig(agents=["fb"], domains=["point_mass_maze"], seeds=[0])
+    nested = normalise_overrides(config, {"fb": {"z_dim": [8, 16]}, "frames": 600}, from_text=False)
+    assert nested == normalise_overrides(config, {"fb.z_dim": [8, 16], "frames": 600}, from_text=False)
+    assert nested == {"fb.z_dim": [8, 16], "frames": [600]}
 
 
 @pytest.mark.parametrize("text, message", [("[0, 1]", "not a list"), ('{"seeds": null}', "expected a list, got None")])

@@ -269,18 +269,6 @@ def test_a_second_writer_is_refused_with_the_holders_pid(tmp_path):
 # Disk errors (a real tmpfs)
 
 
-@pytest.fixture
-def small_disk(tmp_path):
-    mount = tmp_path / "disk"
-    mount.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=500k", "tmpfs", str(mount)], capture_output=True,
-                          text=True)
-    if done.returncode != 0:
-        pytest.fail(f"the disk-error tests need a small tmpfs (run as root): mount said {done.stderr.strip()}")
-    yield mount
-    subprocess.run(["umount", "-l", str(mount)], check=True)
-
-
 @pytest.mark.slow
 def test_full_disk_during_a_checkpoint_is_one_line_and_keeps_the_previous_one(small_disk, capsys):
     run = small_disk / "run"
@@ -297,7 +285,8 @@ def test_read_only_run_fails_before_the_work(finished_run, small_disk, capsys):
     import shutil
 
     run = small_disk / "ro"
-    shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns("checkpoints", "zeroshot", "tb", "metrics"))
+    shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns("checkpoints", "zeroshot", "tb", "metrics",
+                                                                      "finetune"))
     subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], check=True)
     started = time.monotonic()
     argv = ["zeroshot", str(run), "--task", "point_mass_maze_reach_top_left", "--inference.steps", "5000",
@@ -316,7 +305,7 @@ def test_read_only_outputs_of_the_report_and_the_analyses_are_one_line(finished_
 
     run = small_disk / "ro"
     shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns("checkpoints", "tb", "metrics", "zeroshot",
-                                                                      "analysis"))
+                                                                      "analysis", "finetune"))
     assert main(["zeroshot", str(run), "--task", "point_mass_maze_reach_top_left", "--inference.steps", "300",
                  "--inference.random-action-steps", "100", "--inference.samples", "300",
                  "--inference.eval-episodes", "1"]) == 0
@@ -334,6 +323,16 @@ def test_read_only_outputs_of_the_report_and_the_analyses_are_one_line(finished_
     assert main(["analyze-value", str(run), "--task", "point_mass_maze_reach_top_left",
                  "--inference.steps", "300", "--inference.random-action-steps", "100", "--inference.samples", "300"]) == 2
     assert "Read-only file system" in capsys.readouterr().err
+    sweep_file = run.parent.parent / "sweep.toml"
+    sweep_file.write_text('agents = ["fb"]\ndomains = ["point_mass_maze"]\nseeds = [0]\nphases = ["pretrain"]\n')
+    for argv in (["random-policy", "--domain", "point_mass_maze", "--episodes", "1", "--output",
+                  str(small_disk / "random.json")],
+                 ["video", str(run), "--task", "point_mass_maze_reach_top_left", "--out", str(small_disk / "v.gif")],
+                 ["sweep", "run", str(sweep_file), "--dir", str(small_disk / "sweep"), "--executor", "debug"]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "Read-only file system" in err, (argv, err)
+    assert sorted(p.name for p in small_disk.iterdir()) == ["ro"]
 
 
 @pytest.mark.slow
@@ -469,6 +468,13 @@ def test_api_inputs_of_the_wrong_shape_are_named(finished_run):
         model.act(np.zeros(4, np.float32), np.zeros(3, np.float32))
     with pytest.raises(ConfigError, match="obs has shape \\(8, 5\\)"):
         model.infer_z(np.zeros((8, 5), np.float32), np.zeros((8, 5), np.float32), np.ones(8, np.float32))
+    with pytest.raises(ConfigError, match="goal has 2 values but point_mass_maze observations have 4"):
+        model.infer_z(goal=[0.1, 0.1])
+    with pytest.raises(ConfigError, match="goal has shape \\(2, 4\\)"):
+        model.infer_z(goal=np.zeros((2, 4)))
+    with pytest.raises(ConfigError, match="goal must be numbers"):
+        model.infer_z(goal="top left")
+    assert model.infer_z(goal=np.zeros((1, 4))).shape == z.shape
     assert model.act(np.zeros(4, np.float32), z).shape == (2,)
 
 
@@ -542,6 +548,11 @@ def test_more_bad_inputs_are_one_line_exit_2_with_nothing_written(finished_run, 
         (["random-policy", "--domain", "point_mass_maze", "--output", str(output_dir), "--overwrite"],
          "is a directory"),
         (["analyze-exploration", str(finished_run), "--cell-size", "nan"], "positive finite"),
+        (["pretrain", "--agent", "icm_apt", *MAZE, "--run-dir", str(tmp_path / "knn"), "--icm_apt.knn-k", "300",
+          "--ddpg.batch-size", "256"], "--icm_apt.knn-k 300 is larger than the batch its neighbours are found in "
+         "(--ddpg.batch-size 256)"),
+        (["pretrain", "--agent", "dvfb", *MAZE, "--run-dir", str(tmp_path / "knn"), "--exploration.ce-k", "40",
+          "--fb.batch-size", "32"], "--exploration.ce-k 40 is larger than the batch"),
     ]
     before = sorted(p.relative_to(finished_run) for p in finished_run.rglob("*"))
     for argv, message in cases:
@@ -550,6 +561,7 @@ def test_more_bad_inputs_are_one_line_exit_2_with_nothing_written(finished_run, 
         assert len(err) == 1 and message in err[0], (argv, err)
     assert sorted(p.relative_to(finished_run) for p in finished_run.rglob("*")) == before
     assert report_file.read_text() == "keep" and list(output_dir.iterdir()) == []
+    assert not (tmp_path / "knn").exists()
 
 
 def test_reward_function_inference_without_a_replay_collects_states_and_says_so(finished_run, tmp_path):

@@ -23,7 +23,7 @@ from dvfb.agents import get_spec
 from dvfb.errors import ConfigError
 from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run
-from dvfb.workflows.zeroshot import infer_from_reward_fn, run_protocol
+from dvfb.workflows.zeroshot import check_goal, infer_from_reward_fn, run_protocol
 
 
 class PretrainedModel:
@@ -62,6 +62,7 @@ class PretrainedModel:
         protocol.check_source("goal" if goal is not None else "reward_fn", self.name)
         device = self.model.device
         if goal is not None:
+            check_goal(goal, self.model.goal_widths(), self.config.domain, "goal")
             return protocol.skill_from_goal(self.model, goal)[0]
         if reward_fn is not None:
             return infer_from_reward_fn(self.model, self.run, reward_fn, protocol)[0]

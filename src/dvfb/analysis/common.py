@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -163,6 +164,7 @@ class Score:
     value: float
     source: Path
     frames: int | None = None  # fine-tuning frames of the point (Table 2)
+    pretrain_frames: int | None = None  # the pre-training snapshot the number comes from
     episodes: int | None = None  # evaluation episodes behind the value
 
 
@@ -207,7 +209,8 @@ def zeroshot_scores(runs: Iterable[PretrainRun], metric: str = RETURN) -> list[S
             if value is None:
                 continue
             scores.append(Score("zeroshot", run.method, run.config.domain, result.task, run.config.seed,
-                                _number(path, {metric: value}, metric), path, episodes=_episodes(result.returns)))
+                                _number(path, {metric: value}, metric), path, episodes=_episodes(result.returns),
+                                pretrain_frames=result.snapshot_frames))
     return scores
 
 
@@ -228,8 +231,22 @@ def finetune_scores(runs: Iterable[FinetuneRun], metric: str = RETURN) -> list[S
             continue
         scores.append(Score("finetune", run.method, run.config.domain, run.config.task,
                             (run.pretrain_seed, run.config.seed), _number(path, last, metric), path,
-                            frames=int(_number(path, last, "frames")), episodes=_episodes(last.get("returns"))))
+                            frames=int(_number(path, last, "frames")), episodes=_episodes(last.get("returns")),
+                            pretrain_frames=run.config.snapshot))
     return scores
+
+
+def mixed_pretraining_notes(scores: Iterable[Score], table: str) -> list[str]:
+    """One note per method and domain whose numbers in ``table`` come from pre-training snapshots
+    of different frames (a cell would average budgets that the paper keeps apart)."""
+    budgets: dict[tuple[str, str], Counter] = {}
+    for score in scores:
+        if score.pretrain_frames is not None:
+            budgets.setdefault((score.method, score.domain), Counter())[score.pretrain_frames] += 1
+    return [f"{table}: {method} on {domain} averages runs of different pre-training budgets ("
+            + ", ".join(f"{n} number(s) from the snapshot at {f} frames" for f, n in sorted(counts.items()))
+            + "); evaluate one snapshot (--snapshot) to compare like with like"
+            for (method, domain), counts in sorted(budgets.items()) if len(counts) > 1]
 
 
 def random_scores(files: Iterable[str | os.PathLike], metric: str = RETURN) -> list[Score]:

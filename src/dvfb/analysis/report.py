@@ -33,6 +33,7 @@ from dvfb.analysis.common import (
     check_duplicates,
     discover_runs,
     finetune_scores,
+    mixed_pretraining_notes,
     random_scores,
     zeroshot_scores,
 )
@@ -137,6 +138,7 @@ def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_su
         _write(out_dir / "table1_zeroshot_normalised.csv", to_csv(report.zeroshot, normalised=True), report)
         _write_normalised(out_dir, "table1_zeroshot", report.zeroshot, report)
         sections += [section, ""]
+        report.notes += mixed_pretraining_notes(zs, "Table 1")
     if ft:
         report.finetune = build_table(ft, TABLE2, spread)
         section = table_markdown_section(report.finetune)
@@ -144,6 +146,7 @@ def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_su
         if len(frames) > 1:
             report.notes.append("fine-tuning runs end at different frame counts: " + ", ".join(
                 f"{n} run(s) at {f}" for f, n in sorted(frames.items())) + "; Table 2 mixes budgets")
+        report.notes += mixed_pretraining_notes(ft, "Table 2")
         unfinished = [str(r.path) for r in runs.finetune if not r.run.is_finished()]
         if unfinished:
             report.notes.append("unfinished fine-tuning runs (last evaluation used): " + ", ".join(unfinished))

@@ -79,6 +79,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"dvfb {args.command}: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:
+        # A disk error no writer named itself (a read-only or full disk, a permission): one line
+        # naming the path, as for any other bad input, not a traceback.
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"dvfb {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -13,7 +13,7 @@ def cmd_random_policy(args: argparse.Namespace) -> int:
     """Returns of a uniform-random policy on every task of a domain (the table's floor)."""
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb import envs
-    from dvfb.runs import write_json_atomic
+    from dvfb.runs import check_writable, write_json_atomic
     from dvfb.workflows.zeroshot import random_policy_evaluation
 
     envs.check_domain(args.domain)
@@ -22,6 +22,8 @@ def cmd_random_policy(args: argparse.Namespace) -> int:
         raise ConfigError(f"--output {output} is a directory; give a file name (e.g. {output / 'random.json'})")
     if output is not None and output.exists() and not args.overwrite:
         raise ConfigError(f"{output} exists; pass --overwrite to replace it")
+    if output is not None:
+        check_writable(output.parent)  # a read-only or full disk fails now, not after the episodes
     results = {}
     for task in envs.tasks_of_domain(args.domain):
         results[task] = random_policy_evaluation(task, args.episodes, seed=args.seed).summary()

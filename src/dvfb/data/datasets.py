@@ -59,7 +59,7 @@ import torch
 
 from dvfb import __version__, envs
 from dvfb.data.buffer import PHYSICS_COLUMN, Column, ReplayBuffer, physics_columns
-from dvfb.errors import ConfigError, DvfbError
+from dvfb.errors import ConfigError, DvfbError, RunDirError
 from dvfb.files import read_json, write_json_atomic
 
 DATASET_FORMAT = 1
@@ -269,7 +269,11 @@ def write_dataset(out: str | Path, info: DatasetInfo, episodes: Iterable[tuple[i
     at a time (``episodes`` may be a generator)."""
     out = Path(out)
     check_output_dir(out)
-    created = not out.exists()
+    # The topmost folder this call creates (a nested --out creates its parents too): what a failure
+    # removes again, so that nothing is left behind.
+    created = out if not out.exists() else None
+    while created is not None and not created.parent.exists():
+        created = created.parent
     bar = _bar(progress, info.transitions, desc)
     files, digests, transitions = [], {}, 0
     try:
@@ -288,10 +292,14 @@ def write_dataset(out: str | Path, info: DatasetInfo, episodes: Iterable[tuple[i
             bar.update(steps)
         info = dataclasses.replace(info, files=files, episodes=len(files), transitions=transitions, digests=digests)
         write_json_atomic(out / INFO_FILE, dataclasses.asdict(info))
-    except BaseException:
-        shutil.rmtree(out if created else out / EPISODES_DIR, ignore_errors=True)
-        if not created:
+    except BaseException as exc:
+        shutil.rmtree(created or out / EPISODES_DIR, ignore_errors=True)
+        if created is None:
             (out / INFO_FILE).unlink(missing_ok=True)
+        if isinstance(exc, OSError):  # a read-only or full disk, a permission: one line naming the path
+            where = exc.filename or out
+            raise RunDirError(f"cannot write the dataset in {out} ({where}): {exc.strerror or exc}; "
+                              "nothing was left behind") from exc
         raise
     finally:
         bar.close()

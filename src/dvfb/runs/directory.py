@@ -247,18 +247,24 @@ class RunLock:
 
 
 def check_writable(directory: str | os.PathLike) -> None:
-    """Fail early, with one line, if files cannot be written in ``directory`` (created if needed):
-    a read-only file system, a permission problem or a full disk."""
+    """Fail early, with one line, if files cannot be written in ``directory``: a read-only file
+    system, a permission problem or a full disk. Creates nothing: a directory that does not exist yet
+    is probed in its nearest existing parent, where its creation would write (so a command refused
+    later, before its work, leaves no empty folders behind)."""
     directory = Path(directory)
-    probe = directory / f".write-probe{_TEMP_MARK}{uuid.uuid4().hex[:8]}"
+    existing = directory
+    while not existing.exists() and existing.parent != existing:
+        existing = existing.parent
+    probe = existing / f".write-probe{_TEMP_MARK}{uuid.uuid4().hex[:8]}"
     try:
-        directory.mkdir(parents=True, exist_ok=True)
+        if not existing.is_dir():
+            raise NotADirectoryError(20, "Not a directory", str(existing))
         with open(probe, "wb") as file:
             file.write(b"x")
             file.flush()
             os.fsync(file.fileno())
     except OSError as exc:
-        raise RunDirError(f"cannot write in {directory}: {exc.strerror or exc}") from exc
+        raise RunDirError(f"cannot write in {existing}: {exc.strerror or exc}") from exc
     finally:
         try:
             probe.unlink(missing_ok=True)

@@ -143,3 +143,20 @@ def read_metrics(run: RunDir | str | os.PathLike, prefix: str = "train") -> list
                 break
             raise RunDirError(f"{path}:{number} is not valid JSON: {exc}") from exc
     return records
+
+
+def last_metric_record(run: RunDir | str | os.PathLike, prefix: str = "train") -> dict | None:
+    """The newest whole record of ``metrics/<prefix>.jsonl``, None when there is none. For progress
+    reports: any line that is not a whole record (torn by a crash or a full disk, with or without
+    its newline) is passed over rather than hiding the records before it."""
+    path = _as_run_dir(run).metrics_dir / f"{_check_name(prefix, 'metrics prefix')}.jsonl"
+    if not path.exists():
+        return None
+    for line in reversed(path.read_text(encoding="utf-8").splitlines()):
+        try:
+            record = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(record, dict) and isinstance(record.get("step"), int):
+            return record
+    return None

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from dvfb.agents import get_spec
-from dvfb.config import from_dict, param, require_updates, seed_param
+from dvfb.config import flag_name, from_dict, param, require_updates, seed_param
 from dvfb.data import ReplaySamplingConfig
 from dvfb.errors import ConfigError
 from dvfb.execution import DEVICES, PerfConfig
@@ -71,6 +71,7 @@ class PretrainConfig:
 
     def check(self) -> None:
         """Relations between fields (ranges are checked per field)."""
+        self._check_neighbours()
         if self.dataset:
             if self.replay.record_physics:
                 raise ConfigError("--replay.record-physics records what an online run collects; an offline run "
@@ -80,6 +81,22 @@ class PretrainConfig:
                                   "offline batches are drawn uniformly from the dataset (--replay.sampling uniform)")
             return
         require_updates("--frames", self.frames, "--seed-frames", self.seed_frames)
+
+
+    def _check_neighbours(self) -> None:
+        """A k-nearest-neighbour reward looks for its k neighbours among the update's batch (the
+        row itself included): a k above the batch size would be cut to it silently, so refuse it."""
+        sections = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                    if dataclasses.is_dataclass(getattr(self, f.name))}
+        batch = next(((name, s.batch_size) for name, s in sections.items() if hasattr(s, "batch_size")), None)
+        if batch is None:
+            return
+        for name, section in sections.items():
+            for k_field in ("knn_k", "ce_k"):
+                k = getattr(section, k_field, None)
+                if k is not None and k > batch[1]:
+                    raise ConfigError(f"{flag_name(f'{name}.{k_field}')} {k} is larger than the batch its neighbours "
+                                      f"are found in ({flag_name(f'{batch[0]}.batch_size')} {batch[1]})")
 
 
 @functools.cache

@@ -14,7 +14,7 @@ from dvfb.analysis.common import AnalysisError
 from dvfb.analysis.report import make_report
 from dvfb.config import format_value
 from dvfb.errors import ConfigError, DvfbError
-from dvfb.runs import LOCK_FILE, RunLock, read_json, read_metrics, write_json_atomic
+from dvfb.runs import LOCK_FILE, RunLock, last_metric_record, read_json, write_json_atomic
 from dvfb.sweep import spec
 from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, alive_jobs
 from dvfb.sweep.spec import Cell, SweepConfig
@@ -126,12 +126,11 @@ def write_reports(sweep: SweepDir, config: SweepConfig) -> list[Path]:
 
 
 def _last_train_record(run: Path) -> dict:
-    """The newest complete training record of a run (a torn last line is skipped); {} when none."""
+    """The newest complete training record of a run; {} when none (a status only reports)."""
     try:
-        records = read_metrics(run, "train")
+        return last_metric_record(run, "train") or {}
     except (OSError, DvfbError):
         return {}
-    return records[-1] if records else {}
 
 
 def _alive(state: dict, jobs: dict[str, str] | None) -> str | None:

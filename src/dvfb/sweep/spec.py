@@ -154,7 +154,7 @@ def normalise_overrides(config: SweepConfig, raw: dict[str, Any], from_text: boo
     classes = [_run_config_class(agent) for agent in config.agents]
     task_fields = {get_spec(agent).task_field for agent in config.agents} - {None}
     out: dict[str, list] = {}
-    for given_key, value in raw.items():
+    for given_key, value in _flat(raw).items():
         key = canonical_key(given_key)
         if key in task_fields:
             raise ConfigError(f"{flag_name(key)} is set by the sweep itself: a supervised cell per zero-shot task")
@@ -164,6 +164,12 @@ def normalise_overrides(config: SweepConfig, raw: dict[str, Any], from_text: boo
         tp = next((t for t in (field_type(c, key) for c in classes) if t is not None), None)
         if tp is None:
             raise ConfigError(f"no method of the sweep ({', '.join(config.agents)}) has the option {flag_name(key)}")
+        if isinstance(tp, type) and dataclasses.is_dataclass(tp):
+            raise ConfigError(f"{flag_name(key)} is a section of options, not an option; give its options, "
+                              f"e.g. {flag_name(key + '.' + dataclasses.fields(tp)[0].name)}")
+        if not from_text and is_list_type(tp) and value is not None and not isinstance(value, list):
+            raise ConfigError(f"{flag_name(key)} takes a list of values (a list of lists is a grid axis), "
+                              f"got {value!r}")
         if from_text:
             texts = [str(value)] if is_list_type(tp) else str(value).split(",")
             values = [parse_text(key, tp, text) for text in texts]
@@ -177,6 +183,17 @@ def normalise_overrides(config: SweepConfig, raw: dict[str, Any], from_text: boo
             raise ConfigError(f"{flag_name(key)} lists a value twice: {values}")
         out[key] = values
     return out
+
+
+def _flat(raw: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A file's overrides with nested tables (TOML's ``[overrides.fb]``) as dotted keys."""
+    flat: dict[str, Any] = {}
+    for key, value in raw.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
 
 
 def _tasks(config: SweepConfig, domain: str, requested: list[str]) -> list[str]:

@@ -29,6 +29,7 @@ import torch
 from dvfb import envs
 from dvfb.analysis.common import AnalysisError
 from dvfb.errors import DvfbError
+from dvfb.runs import check_writable
 from dvfb.runs.snapshots import load_model
 from dvfb.training.evaluation import run_episode
 from dvfb.training.rollout import Observer
@@ -194,6 +195,7 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
     check_output(out)
     if out.exists() and not overwrite:
         raise AnalysisError(f"{out} exists; pass --overwrite to replace it")
+    check_writable(out.parent)  # a read-only or full disk fails now, not after the episodes
     seed = config.seed if seed is None else seed
     started = time.time()
 

@@ -262,14 +262,19 @@ def task_skill(model: Model, run: PretrainRun, task: str, protocol: ZeroShotProt
     return protocol.skill_from_goal(model, goal)
 
 
-def check_goal(goal: np.ndarray, widths: tuple[int, ...], domain: str) -> None:
-    """A goal has one of the widths the model accepts (an observation of the domain, or what else
-    its skill-from-goal map reads)."""
-    size = int(np.asarray(goal).size)
-    if size not in widths:
-        raise ConfigError(f"--goal has {size} values but {domain} observations have {widths[0]}")
-    if not np.all(np.isfinite(np.asarray(goal, dtype=float))):
-        raise ConfigError("--goal holds a non-finite value")
+def check_goal(goal, widths: tuple[int, ...], domain: str, name: str = "--goal") -> None:
+    """A goal is numbers of one of the widths the model accepts (an observation of the domain, or
+    what else its skill-from-goal map reads), all finite; ``name`` is what the error calls it."""
+    try:
+        values = np.asarray(goal, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{name} must be numbers (one {domain} observation): {exc}") from exc
+    if values.size not in widths or values.ndim > 1 and values.shape[0] != 1:
+        raise ConfigError(f"{name} has shape {values.shape} ({values.size} values) but {domain} observations have "
+                          f"{widths[0]}" if values.ndim > 1 else
+                          f"{name} has {values.size} values but {domain} observations have {widths[0]}")
+    if not np.all(np.isfinite(values)):
+        raise ConfigError(f"{name} holds a non-finite value")
 
 
 def random_policy_evaluation(task: str, episodes: int, seed: int = 0) -> Evaluation:
