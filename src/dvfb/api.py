@@ -1,14 +1,16 @@
-"""The Python API: ``dvfb.load(run_dir)`` gives a pre-trained model to infer a task and act with.
+"""The Python API: ``dvfb.load(path)`` gives a pre-trained model to infer a task and act with.
 
     import dvfb
-    model = dvfb.load("runs/dvfb_walker_small_s0")
+    model = dvfb.load("runs/dvfb_walker_small_s0")   # a run directory, or an exported model
     z = model.infer_z(reward_fn=lambda next_obs: next_obs[:, 0])  # or goal=..., or samples
     act = model.policy(z)
     action = act(obs)
+    model.save_pretrained("shared/dvfb_walker_s0")   # safetensors + config.json + model card
 
-The object holds the run's model (:class:`~dvfb.agents.base.Model`, through the registry, any method:
-its networks for acting and inference, no optimiser) and uses the zero-shot machinery of
-:mod:`dvfb.workflows.zeroshot`; it writes nothing into the run directory.
+The object holds the model (:class:`~dvfb.agents.base.Model`, through the registry, any method: its
+networks for acting and inference, no optimiser) and uses the zero-shot machinery of
+:mod:`dvfb.workflows.zeroshot`; it writes nothing into the run directory. An exported model
+(docs/sharing.md) is read without any pickle.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import torch
 
 from dvfb.agents import get_spec
 from dvfb.errors import ConfigError
+from dvfb.runs.export import export_model, is_export, load_export, write_export
 from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run
 from dvfb.workflows.zeroshot import check_goal, infer_from_reward_fn, run_protocol
@@ -33,10 +36,18 @@ class PretrainedModel:
     ``act`` and ``policy`` act with a skill, or without one for single-policy methods.
     """
 
-    def __init__(self, run_dir: str | Path, snapshot: int | None = None, device: str | None = None):
-        self.run = open_run(run_dir)
-        self.config = self.run.config
-        self.model, self.snapshot = load_model(self.run, snapshot, device)
+    def __init__(self, path: str | Path, snapshot: int | None = None, device: str | None = None):
+        self.export = None
+        if is_export(path):
+            if snapshot is not None:
+                raise ConfigError(f"{path} is an exported model of one snapshot; load it without snapshot=")
+            self.export = load_export(path, device or "cpu")
+            self.run, self.config, self.model = None, self.export.config, self.export.model
+            self.snapshot = self.export.info["frames"]
+        else:
+            self.run = open_run(path)
+            self.config = self.run.config
+            self.model, self.snapshot = load_model(self.run, snapshot, device)
         self.spec = get_spec(self.config.agent)
 
     @property
@@ -65,7 +76,8 @@ class PretrainedModel:
             check_goal(goal, self.model.goal_widths(), self.config.domain, "goal")
             return protocol.skill_from_goal(self.model, goal)[0]
         if reward_fn is not None:
-            return infer_from_reward_fn(self.model, self.run, reward_fn, protocol)[0]
+            return infer_from_reward_fn(self.model, self.run, reward_fn, protocol, config=self.config,
+                                        states=self._exported_states())[0]
         if obs is None or next_obs is None:
             raise ConfigError("infer_z from samples needs obs, next_obs and rewards")
 
@@ -81,6 +93,28 @@ class PretrainedModel:
             raise ConfigError(f"obs, next_obs and rewards have {obs_t.shape[0]}, {next_t.shape[0]} and "
                               f"{reward_t.shape[0]} rows; they must match")
         return protocol.skill_from_samples(self.model, obs_t, next_t, reward_t)[0]
+
+    def _exported_states(self):
+        data = self.export.inference_data if self.export is not None else None
+        if not data:
+            return None
+        device = self.model.device
+        return (torch.as_tensor(data["obs"], device=device), torch.as_tensor(data["next_obs"], device=device),
+                f"the exported model's inference data ({len(data['obs'])} transitions)")
+
+    def save_pretrained(self, out: str | Path, with_inference_data: bool = False, overwrite: bool = False) -> Path:
+        """Write the model as an exported model (docs/sharing.md): ``model.safetensors``,
+        ``config.json`` and a model card ``README.md`` in ``out`` (absent or empty; ``overwrite``
+        replaces an exported model), with the reward-inference samples if ``with_inference_data``."""
+        if self.run is not None:
+            return export_model(self.run, out, snapshot=self.snapshot, with_inference_data=with_inference_data,
+                                overwrite=overwrite)
+        data = self.export.inference_data if with_inference_data else None
+        if with_inference_data and data is None:
+            raise ConfigError(f"{self.export.path} has no inference data to save")
+        info = self.export.info
+        return write_export(out, self.model, self.config, frames=info["frames"], zero_shot=info.get("zero_shot"),
+                            command=info.get("command"), inference_data=data, overwrite=overwrite)
 
     def act(self, obs: np.ndarray, z: torch.Tensor | None = None, explore: bool = False) -> np.ndarray:
         """One action: the policy's mean (or a rollout sample with ``explore``)."""
@@ -104,6 +138,7 @@ class PretrainedModel:
         return lambda obs: self.act(obs, z, explore)
 
 
-def load(run_dir: str | Path, snapshot: int | None = None, device: str | None = None) -> PretrainedModel:
-    """Load a pre-training run's model (see :class:`PretrainedModel`)."""
-    return PretrainedModel(run_dir, snapshot, device)
+def load(path: str | Path, snapshot: int | None = None, device: str | None = None) -> PretrainedModel:
+    """Load a pre-trained model from a run directory (its newest snapshot, or ``snapshot``) or from
+    an exported model's directory (see :class:`PretrainedModel`)."""
+    return PretrainedModel(path, snapshot, device)

@@ -1,6 +1,6 @@
 """The ``dvfb`` command line, one module per command: tasks and agents (:mod:`~dvfb.cli.info`), pretrain,
 zeroshot, finetune, supervised (the reference), random-policy, demo, sweep, report, the analyses (analyze-value,
-analyze-exploration), video and dataset (export and relabel).
+analyze-exploration), video, dataset (export and relabel), export and push (:mod:`~dvfb.cli.share`).
 
 Every option of the typed run configuration is a flag (nested fields as ``--fb.hidden-dim``), shown
 with its default in ``--help``. Errors caused by input (unknown task, bad run directory, mismatched
@@ -15,13 +15,14 @@ import logging
 import sys
 
 from dvfb import __version__
-from dvfb.cli import (analyze, dataset, demo, finetune, info, pretrain, random_policy, report, supervised, sweep, video,
-                      zeroshot)
+from dvfb.cli import (analyze, dataset, demo, finetune, info, pretrain, random_policy, report, share, supervised, sweep,
+                      video, zeroshot)
 from dvfb.cli.common import Formatter
 from dvfb.errors import DvfbError, RunInterrupted
 
 # The order of `dvfb --help`.
-COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo, sweep, report, analyze, video, dataset)
+COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo, sweep, report, analyze, video, dataset,
+            share)
 
 
 def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
@@ -66,6 +67,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(_requested_agent(argv))
     args = parser.parse_args(argv)
+    # What a run's meta.json records as its command: this call's, also when it runs in-process (a
+    # sweep's debug executor, the tests), where sys.argv is the host program's.
+    args.command_line = ["dvfb", *argv]
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:

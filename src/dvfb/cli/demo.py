@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +56,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                            replay_capacity=max(args.frames, 1000))  # the whole live run, not 1M transitions
     live = out / "live_pretrain"
     print(f"[demo] live pre-training: dvfb on walker for {config.frames} frames (small preset) into {live}")
-    pretrain(config, live, overwrite=True, progress=args.progress, command=sys.argv)
+    pretrain(config, live, overwrite=True, progress=args.progress, command=args.command_line)
     print(f"[demo] done: {out}/ (zero-shot results in {agent_dir}/zeroshot/, the live run in {live}/)")
     return 0
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from dvfb.cli.common import (DEFAULT_PRESET, Formatter, default_run_dir, member_run_dirs, pretrain_config,
@@ -17,13 +16,13 @@ def cmd_pretrain(args: argparse.Namespace) -> int:
     config = pretrain_config(args)
     if args.seeds is not None:
         runs = pretrain(config, member_run_dirs(config, args.run_dir, args.seeds), seeds=args.seeds,
-                        resume=args.resume, overwrite=args.overwrite, progress=args.progress, command=sys.argv)
+                        resume=args.resume, overwrite=args.overwrite, progress=args.progress, command=args.command_line)
         for run in runs:
             print(f"pre-training finished: {run.path}")
         return 0
     run_dir = Path(args.run_dir) if args.run_dir else default_run_dir(config)
     run = pretrain(config, run_dir, resume=args.resume, overwrite=args.overwrite,
-                   progress=args.progress, command=sys.argv)
+                   progress=args.progress, command=args.command_line)
     print(f"pre-training finished: {run.path}")
     return 0
 

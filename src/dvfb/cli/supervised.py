@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from dvfb.cli.common import DEFAULT_PRESET, Formatter, progress_flag
@@ -36,7 +35,7 @@ def cmd_supervised(args: argparse.Namespace) -> int:
     config = supervised_config(args)
     run_dir = Path(args.run_dir) if args.run_dir else Path("runs") / f"{AGENT}_{args.task}_{config.preset}_s{config.seed}"
     run = pretrain(config, run_dir, resume=args.resume, overwrite=args.overwrite, progress=args.progress,
-                   command=sys.argv)
+                   command=args.command_line)
     out = PretrainRun.open(run.path).zeroshot_result(args.task, config.frames)
     if out.exists():
         print(f"supervised reference {run.path}: already evaluated ({out})")

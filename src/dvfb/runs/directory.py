@@ -26,6 +26,8 @@ T = TypeVar("T")
 
 CONFIG_FILE = "config.json"
 META_FILE = "meta.json"
+# The config.json of an exported model (dvfb.runs.export) says so: such a directory is no run.
+EXPORT_FORMAT = "dvfb-model"
 LOCK_FILE = ".lock"
 # Checkpoint, snapshot and metric names become file names: keep them to one safe path component.
 _NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.\-]*")
@@ -152,6 +154,9 @@ class RunDir:
         data = read_json(config_path, RunDirError)
         if not isinstance(data, dict):
             raise RunDirError(f"{config_path} is corrupt: expected a JSON object")
+        if data.get("format") == EXPORT_FORMAT:
+            raise RunDirError(f"{path} is an exported model (dvfb export), not a run directory; load it with "
+                              "dvfb.load() in Python")
         run = RunDir(path)
         # A resumed run writes into these; one that is not a directory fails now, before anything
         # (config.json included) is rewritten, not halfway through the resume.

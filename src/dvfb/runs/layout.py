@@ -35,7 +35,7 @@ from typing import Any
 from dvfb.errors import ConfigError, RunDirError
 from dvfb.files import read_json, write_json_atomic
 from dvfb.runs.checkpoints import latest_checkpoint, list_snapshots, load_checkpoint
-from dvfb.runs.directory import CONFIG_FILE, META_FILE, RunDir
+from dvfb.runs.directory import CONFIG_FILE, EXPORT_FORMAT, META_FILE, RunDir
 from dvfb.runs.migrations import kind_from_config
 from dvfb.runs.records import Curve, FinetuneSummary, PretrainSummary, ZeroShotResult
 from dvfb.runs.run_config import FinetuneRunConfig, PretrainConfig, load_finetune_run_config, load_run_config
@@ -73,7 +73,10 @@ def run_kind(path: str | os.PathLike) -> str | None:
             kind = None
         if kind in (PRETRAIN, FINETUNE):
             return kind
-    return kind_from_config(read_json(path / CONFIG_FILE, RunDirError))
+    config = read_json(path / CONFIG_FILE, RunDirError)
+    if isinstance(config, dict) and config.get("format") == EXPORT_FORMAT:
+        return None  # an exported model (dvfb.runs.export)
+    return kind_from_config(config)
 
 
 class PretrainRun(RunDir):

@@ -72,22 +72,41 @@ def load_reward_fn(spec: str) -> Callable[[np.ndarray], np.ndarray]:
         raise ConfigError(f"cannot load reward function {spec!r}: {exc}") from exc
 
 
-def infer_from_reward_fn(model: Model, run: PretrainRun, reward_fn: Callable, protocol: ZeroShotProtocol,
-                         rng: np.random.Generator | None = None) -> tuple[torch.Tensor, dict]:
+def infer_from_reward_fn(model: Model, run: PretrainRun | None, reward_fn: Callable, protocol: ZeroShotProtocol,
+                         rng: np.random.Generator | None = None, config: PretrainConfig | None = None,
+                         states: tuple[torch.Tensor, torch.Tensor, str] | None = None) -> tuple[torch.Tensor, dict]:
     """Apply ``reward_fn`` to states and infer the skill from those rewards.
 
-    The states are those of the run's pre-training replay (its newest resume checkpoint). A run
-    without one (a shipped snapshot, such as the bundled demo model) collects them instead in the
-    domain's reward-free environment with the protocol's data-collection rule and budget
+    The states are ``states`` (observations, next observations, where they come from) when given
+    (an exported model's inference data), else those of the run's pre-training replay (its newest
+    resume checkpoint). Without either (a shipped snapshot such as the bundled demo model, or an
+    exported model without inference data: ``run`` None and its ``config``), they are collected in
+    the domain's reward-free environment with the protocol's data-collection rule and budget
     (``inference.steps``, uniform actions first). ``info["states"]`` says which was used.
     """
-    config = run.config
+    config = run.config if run is not None else config
+    if states is not None:
+        obs, next_obs, source = states
+    else:
+        obs, next_obs, source = _inference_states(model, run, config, protocol, rng)
+    rewards = np.asarray(reward_fn(next_obs.cpu().numpy()), dtype=np.float32).reshape(-1)
+    if rewards.shape[0] != next_obs.shape[0]:
+        raise ConfigError(f"reward function returned {rewards.shape[0]} rewards for {next_obs.shape[0]} states")
+    reward_t = torch.as_tensor(rewards, device=model.device)
+    skill, info = protocol.skill_from_samples(model, obs, next_obs, reward_t)
+    return skill, {**info, "states": source}
+
+
+def _inference_states(model: Model, run: PretrainRun | None, config: PretrainConfig, protocol: ZeroShotProtocol,
+                      rng: np.random.Generator | None) -> tuple[torch.Tensor, torch.Tensor, str]:
     episode_length = envs.TASKS[envs.pretrain_task(config.domain)].episode_length
-    try:
-        state = run.resume_state()
-    except CheckpointError:
-        state = None
-    if config.dataset:  # an offline run: its dataset's states
+    state = None
+    if run is not None:
+        try:
+            state = run.resume_state()
+        except CheckpointError:
+            state = None
+    if run is not None and config.dataset:  # an offline run: its dataset's states
         buffer, _ = read_dataset(config.dataset, model.device, model.skill_dim)
         source = f"the run's dataset {config.dataset}"
     elif state is not None:
@@ -100,14 +119,10 @@ def infer_from_reward_fn(model: Model, run: PretrainRun, reward_fn: Callable, pr
         env = envs.make(envs.pretrain_task(config.domain), seed=config.seed, reward_free=True)
         rng = rng if rng is not None else np.random.default_rng(config.seed)
         buffer = collect_inference_data(model, env, c.steps, c.random_action_steps, rng, episode_length)
-        source = f"{c.steps} steps collected in {envs.pretrain_task(config.domain)} (the run has no replay)"
+        what = "the run has no replay" if run is not None else "no inference data"
+        source = f"{c.steps} steps collected in {envs.pretrain_task(config.domain)} ({what})"
     data = buffer.transitions()
-    rewards = np.asarray(reward_fn(data.next_obs.cpu().numpy()), dtype=np.float32).reshape(-1)
-    if rewards.shape[0] != data.next_obs.shape[0]:
-        raise ConfigError(f"reward function returned {rewards.shape[0]} rewards for {data.next_obs.shape[0]} states")
-    reward_t = torch.as_tensor(rewards, device=model.device)
-    skill, info = protocol.skill_from_samples(model, data.obs, data.next_obs, reward_t)
-    return skill, {**info, "states": source}
+    return data.obs, data.next_obs, source
 
 
 def infer_from_dataset(model: Model, run: PretrainRun, task: str, protocol: ZeroShotProtocol,

@@ -1,0 +1,261 @@
+"""Exported models: a pre-trained agent as the field shares one (docs/sharing.md), one directory per
+seed, with no pickle and no run directory::
+
+    DIR/model.safetensors      the model's inference weights (actor, maps or critics), by module
+    DIR/config.json            what the weights are: method, domain, spaces, frames, seed, the run
+                               config, the zero-shot results, dvfb's version and the format version
+    DIR/README.md              a model card with YAML metadata (library, tags, metrics)
+    DIR/inference_data.npz     optional: reward-inference samples (observations, next observations,
+                               and the physics states of the observations when the run recorded them)
+
+:func:`export_model` writes it from a run's snapshot, :func:`write_export` from a model already
+loaded, and :func:`load_export` reads it back into the same :class:`~dvfb.agents.base.Model`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shlex
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from dvfb import __version__
+from dvfb.agents import Model, get_spec, make_model
+from dvfb.config import to_dict
+from dvfb.data import ReplayBuffer
+from dvfb.data.buffer import PHYSICS_COLUMN
+from dvfb.errors import CheckpointError, ConfigError, RunDirError
+from dvfb.files import read_json, write_json_atomic
+from dvfb.runs.directory import EXPORT_FORMAT, check_writable
+from dvfb.runs.layout import PretrainRun
+from dvfb.runs.run_config import PretrainConfig, run_config_from_dict
+
+EXPORT_VERSION = 1
+MODEL_FILE, CONFIG_FILE, CARD_FILE, INFERENCE_FILE = ("model.safetensors", "config.json", "README.md",
+                                                      "inference_data.npz")
+# At most this many transitions go into inference_data.npz by default (chosen uniformly, with the
+# run's seed): the FB family's inference draws far fewer (inference.samples), and a paper-scale
+# replay of 1M transitions would make a share of hundreds of megabytes.
+DEFAULT_INFERENCE_SIZE = 100_000
+
+
+def is_export(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is an exported model directory (its config.json says so)."""
+    config = Path(path) / CONFIG_FILE
+    if not (Path(path) / MODEL_FILE).is_file() or not config.is_file():
+        return False
+    try:
+        return read_json(config).get("format") == EXPORT_FORMAT
+    except (RunDirError, AttributeError):
+        return False
+
+
+@dataclasses.dataclass
+class Export:
+    """An exported model read back: its model, run config, config.json and inference data."""
+
+    path: Path
+    model: Model
+    config: PretrainConfig
+    info: dict
+    inference_data: dict[str, np.ndarray] | None
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} is a file; give a directory for the exported model")
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            raise ConfigError(f"--out {out} is not empty; pass --overwrite to replace an exported model there")
+        if not is_export(out):
+            raise ConfigError(f"--out {out} holds something else than an exported model; it is not replaced")
+    check_writable(out)
+
+
+def _weights(model: Model) -> dict[str, torch.Tensor]:
+    tensors = {}
+    for module_name, module in model.snapshot_modules().items():
+        for name, value in module.state_dict().items():
+            if not isinstance(value, torch.Tensor):
+                raise ConfigError(f"{module_name}.{name} is not a tensor; the model cannot be exported")
+            # Own, contiguous CPU storage: safetensors refuses tensors that share memory.
+            tensors[f"{module_name}.{name}"] = value.detach().to("cpu").contiguous().clone()
+    return tensors
+
+
+def inference_samples(run: PretrainRun, size: int, seed: int) -> dict[str, np.ndarray]:
+    """Up to ``size`` transitions of the run's pre-training replay, uniformly without replacement
+    (``seed``), as the arrays of ``inference_data.npz``."""
+    state = run.resume_state()
+    if state is None or "replay" not in state:
+        raise ConfigError(f"{run.path} has no pre-training replay (no resume checkpoint) to take inference samples "
+                          "from; export it without --with-inference-data")
+    replay = state["replay"]
+    # A buffer of the shape the replay was saved with.
+    buffer = ReplayBuffer(int(replay["capacity"]), int(replay["obs_dim"]), int(replay["action_dim"]),
+                          int(replay["z_dim"]), int(replay["max_episode_length"]), columns=replay.get("columns"))
+    buffer.load_state_dict(replay)
+    data = buffer.transitions()
+    n = data.obs.shape[0]
+    chosen = np.sort(np.random.default_rng(seed).choice(n, size=min(size, n), replace=False))
+    index = torch.as_tensor(chosen)
+    arrays = {"obs": data.obs[index].cpu().numpy(), "next_obs": data.next_obs[index].cpu().numpy()}
+    if PHYSICS_COLUMN in data.columns:
+        arrays[PHYSICS_COLUMN] = data.columns[PHYSICS_COLUMN][index].cpu().numpy()
+    return arrays
+
+
+def _metrics(zero_shot: dict[str, float]) -> str:
+    lines = []
+    for task, value in sorted(zero_shot.items()):
+        lines += [f"      - task: {{type: reinforcement-learning, name: zero-shot {task}}}",
+                  f"        dataset: {{type: dm_control, name: {task}}}",
+                  f"        metrics: [{{type: mean_return, name: zero-shot episode return, value: {value:.1f}}}]"]
+    return "\n".join(lines)
+
+
+def model_card(info: dict) -> str:
+    """The model card: YAML metadata the hub reads, then what the model is and how to use it."""
+    agent, domain, frames, preset = info["agent"], info["domain"], info["frames"], info["preset"]
+    name = f"{agent}_{domain}_s{info['seed']}"
+    zero_shot = info.get("zero_shot", {})
+    metadata = ["---", "library_name: dvfb", "pipeline_tag: reinforcement-learning",
+                f"tags: [reinforcement-learning, unsupervised-reinforcement-learning, zero-shot-reinforcement-learning, "
+                f"dvfb, {agent}, dm_control, {domain}]",
+                "model-index:", f"  - name: {name}", "    results:" + ("" if zero_shot else " []")]
+    if zero_shot:
+        metadata.append(_metrics(zero_shot))
+    metadata.append("---")
+    scale = ("the paper's scale (2M frames, paper preset)" if preset == "paper" and frames >= 2_000_000 else
+             f"{frames:,} frames at the `{preset}` preset, below the paper's 2M frames at the paper preset: its "
+             "scores are not comparable with the paper's tables")
+    results = ("\n".join(f"| {task} | {value:.1f} |" for task, value in sorted(zero_shot.items()))
+               if zero_shot else "")
+    body = [f"# {name}", "",
+            f"A `{agent}` agent pre-trained without rewards on `{domain}` for {frames:,} frames (seed "
+            f"{info['seed']}, `{preset}` preset) with dvfb {info['dvfb_version']}.", "",
+            "Made with:", "", "```bash", info.get("command") or "(command not recorded)", "```", "",
+            "## Use", "", "```python", "import dvfb", "", "model = dvfb.load(\"PATH/TO/THIS/DIRECTORY\")",
+            "z = model.infer_z(reward_fn=lambda next_obs: next_obs[:, 0])  # or goal=..., or samples",
+            "action = model.act(obs, z)", "```", "",
+            "`model.safetensors` holds the inference weights only (no optimiser, no pickle); `config.json` says "
+            "what they are." + (" `inference_data.npz` holds reward-inference samples from the pre-training "
+                                "replay." if info.get("inference_data") else ""), "",
+            "## Zero-shot results", "",
+            (f"Mean episode return of the zero-shot policy (dvfb's docs/methods.md), {scale}.\n\n| task | return |\n"
+             f"|---|---:|\n{results}" if zero_shot else "None recorded in the run (`dvfb zeroshot RUN --task T` "
+                                                         "before exporting adds them)."), ""]
+    return "\n".join(metadata + body)
+
+
+def write_export(out: str | os.PathLike, model: Model, config: PretrainConfig, *, frames: int,
+                 zero_shot: dict[str, float] | None = None, command: str | None = None,
+                 inference_data: dict[str, np.ndarray] | None = None, overwrite: bool = False) -> Path:
+    """Write ``model`` (of run config ``config``, after ``frames`` frames) as an exported model.
+    ``out`` must be absent or empty (or, with ``overwrite``, an exported model)."""
+    from safetensors.torch import save_file
+
+    out = Path(out)
+    _check_out(out, overwrite)
+    weights = _weights(model)
+    info = {"format": EXPORT_FORMAT, "format_version": EXPORT_VERSION, "library": "dvfb",
+            "dvfb_version": __version__, "agent": config.agent, "domain": config.domain, "frames": int(frames),
+            "seed": config.seed, "preset": config.preset, "skill_dim": model.skill_dim,
+            "observation_space": {"shape": [model.obs_dim], "dtype": "float32"},
+            "action_space": {"shape": [model.action_dim], "dtype": "float32", "low": -1.0, "high": 1.0},
+            "zero_shot": dict(sorted((zero_shot or {}).items())), "command": command,
+            "inference_data": INFERENCE_FILE if inference_data is not None else None,
+            "run_config": to_dict(config)}
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for stale in (MODEL_FILE, CONFIG_FILE, CARD_FILE, INFERENCE_FILE):
+            (out / stale).unlink(missing_ok=True)
+        save_file(weights, str(out / MODEL_FILE), metadata={"format": EXPORT_FORMAT, "agent": config.agent})
+        if inference_data is not None:
+            np.savez_compressed(out / INFERENCE_FILE, **inference_data)
+        (out / CARD_FILE).write_text(model_card(info), encoding="utf-8")
+        write_json_atomic(out / CONFIG_FILE, info)  # last: a directory without it is no export
+    except BaseException as exc:
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        if isinstance(exc, OSError):
+            raise RunDirError(f"cannot write the exported model in {out}: {exc.strerror or exc}") from exc
+        raise
+    return out
+
+
+def export_model(run: PretrainRun, out: str | os.PathLike, *, snapshot: int | None = None,
+                 with_inference_data: bool = False, inference_size: int = DEFAULT_INFERENCE_SIZE,
+                 overwrite: bool = False) -> Path:
+    """Export the run's snapshot (the newest by default) with its final zero-shot results."""
+    from dvfb.runs.snapshots import load_model
+
+    if inference_size < 1:
+        raise ConfigError(f"--inference-size {inference_size} is out of range: it must be >= 1")
+    _check_out(Path(out), overwrite)  # before the model is read
+    model, frames = load_model(run, snapshot, "cpu")
+    zero_shot = ({result.task: result.mean_return for _, result in run.zeroshot_results()}
+                 if frames == run.snapshot_frames()[-1] else {})
+    data = inference_samples(run, inference_size, run.config.seed) if with_inference_data else None
+    try:
+        command = read_json(run.meta_path).get("command")
+    except (RunDirError, AttributeError):
+        command = None
+    if isinstance(command, list) and command:
+        command = " ".join(["dvfb", *map(shlex.quote, command[1:])])  # argv[0] is the entry point's path
+    return write_export(out, model, run.config, frames=frames, zero_shot=zero_shot, command=command,
+                        inference_data=data, overwrite=overwrite)
+
+
+def load_export(path: str | os.PathLike, device: str | torch.device = "cpu") -> Export:
+    """Read an exported model (no pickle is read: weights from safetensors, the rest JSON)."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    path = Path(path)
+    info = read_json(path / CONFIG_FILE, CheckpointError)
+    if not isinstance(info, dict) or info.get("format") != EXPORT_FORMAT:
+        raise CheckpointError(f"{path / CONFIG_FILE} is not the config of an exported dvfb model")
+    if info.get("format_version") != EXPORT_VERSION:
+        raise CheckpointError(f"{path} is an exported model of format version {info.get('format_version')!r}; this "
+                              f"dvfb ({__version__}) reads version {EXPORT_VERSION}")
+    config = run_config_from_dict(info.get("run_config"), str(path / CONFIG_FILE))
+    get_spec(config.agent)
+    obs_dim, action_dim = info["observation_space"]["shape"][0], info["action_space"]["shape"][0]
+    model = make_model(config.agent, obs_dim, action_dim, config, device)
+    try:
+        tensors = load_file(str(path / MODEL_FILE), device="cpu")
+    except (OSError, SafetensorError) as exc:
+        raise CheckpointError(f"{path / MODEL_FILE} cannot be read: {exc}") from exc
+    modules: dict[str, dict[str, Any]] = {name: {} for name in model.snapshot_modules()}
+    for key, value in tensors.items():
+        module, _, name = key.partition(".")
+        if module not in modules:
+            raise CheckpointError(f"{path / MODEL_FILE} holds {key}, which no module of {config.agent!r} has")
+        modules[module][name] = value
+    try:
+        model.load_snapshot(modules)
+    except (KeyError, RuntimeError) as exc:
+        raise CheckpointError(f"{path / MODEL_FILE} does not fit {config.agent!r}'s networks: {exc}") from exc
+    model.eval()
+    data = None
+    if info.get("inference_data"):
+        try:
+            with np.load(path / INFERENCE_FILE, allow_pickle=False) as file:
+                data = {key: file[key] for key in file.files}
+        except (OSError, ValueError) as exc:
+            raise CheckpointError(f"{path / INFERENCE_FILE} cannot be read: {exc}") from exc
+    return Export(path, model, config, info, data)
+
+
+def describe_export(path: Path) -> str:
+    info = json.loads((path / CONFIG_FILE).read_text())
+    return (f"{path}: {info['agent']} on {info['domain']}, {info['frames']} frames, seed {info['seed']} "
+            f"({', '.join(f for f in (MODEL_FILE, CONFIG_FILE, CARD_FILE, INFERENCE_FILE) if (path / f).exists())})")

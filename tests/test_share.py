@@ -1,0 +1,157 @@
+"""Exported models (docs/sharing.md): `dvfb export` / `save_pretrained` write safetensors, config.json
+and a model card; `dvfb.load(DIR)` reads them back, with no pickle and no run directory, into the
+model the run itself gives."""
+
+from __future__ import annotations
+
+import pickle
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+import dvfb
+from dvfb.cli import main
+
+MAZE_TASK = "point_mass_maze_reach_top_left"
+TINY = ["--fb.z-dim", "8", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
+        "--fb.batch-size", "32", "--torch-threads", "1", "--update-every", "4", "--checkpoint-every", "1000"]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> Path:
+    """An FB run on the maze (2 episodes, physics recorded) with one zero-shot result."""
+    path = tmp_path_factory.mktemp("share") / "fb"
+    assert main(["pretrain", "--agent", "fb", "--domain", "point_mass_maze", "--frames", "2000", "--seed-frames",
+                 "500", "--run-dir", str(path), "--replay.record-physics", "true", "--no-progress", *TINY]) == 0
+    assert main(["zeroshot", str(path), "--task", MAZE_TASK, "--inference.eval-episodes", "1"]) == 0
+    return path
+
+
+def _samples(seed: int = 0):
+    rng = np.random.default_rng(seed)
+    return (rng.standard_normal((64, 4)).astype(np.float32), rng.standard_normal((64, 4)).astype(np.float32),
+            rng.random(64).astype(np.float32))
+
+
+def test_an_exported_model_copied_elsewhere_acts_and_infers_as_the_run(run, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "export"
+    assert main(["export", str(run), "--out", str(out), "--with-inference-data"]) == 0
+    assert "fb on point_mass_maze, 2000 frames, seed 0" in capsys.readouterr().out
+    assert sorted(p.name for p in out.iterdir()) == ["README.md", "config.json", "inference_data.npz",
+                                                     "model.safetensors"]
+    copy = tmp_path / "elsewhere" / "model"
+    shutil.copytree(out, copy)
+
+    original = dvfb.load(run)
+
+    def no_pickle(*args, **kwargs):
+        raise AssertionError("an exported model was read with pickle")
+
+    monkeypatch.setattr(torch, "load", no_pickle)
+    monkeypatch.setattr(pickle, "load", no_pickle)
+    monkeypatch.setattr(pickle, "loads", no_pickle)
+    exported = dvfb.load(copy)
+    monkeypatch.undo()
+
+    obs, next_obs, rewards = _samples()
+    z_run, z_export = original.infer_z(obs, next_obs, rewards), exported.infer_z(obs, next_obs, rewards)
+    assert torch.equal(z_run, z_export)
+    for row in obs[:8]:
+        assert np.array_equal(original.act(row, z_run), exported.act(row, z_export))
+    goal = [0.2, -0.1, 0.0, 0.0]
+    assert torch.equal(original.infer_z(goal=goal), exported.infer_z(goal=goal))
+    # The inference data hold the whole (small) replay in its order: a reward function's skill is
+    # the one the run infers from its own replay (to rounding: the replay's rows are strided views,
+    # the exported arrays contiguous, and the products sum them in another order).
+    reward_fn = lambda states: states[:, 0] - states[:, 1]  # noqa: E731 (towards the bottom right)
+    torch.testing.assert_close(original.infer_z(reward_fn=reward_fn), exported.infer_z(reward_fn=reward_fn),
+                               rtol=1e-5, atol=1e-6)
+    data = np.load(copy / "inference_data.npz")
+    assert data["obs"].shape == data["next_obs"].shape == (2000, 4) and data["physics"].shape[0] == 2000
+
+
+def test_the_model_card_carries_the_metadata_and_the_results(run, tmp_path):
+    out = dvfb.load(run).save_pretrained(tmp_path / "card")
+    text = (out / "README.md").read_text()
+    assert text.startswith("---\n")
+    meta = yaml.safe_load(text.split("---\n")[1])
+    assert meta["library_name"] == "dvfb" and "fb" in meta["tags"] and "point_mass_maze" in meta["tags"]
+    result = json_result(run)
+    (entry,) = meta["model-index"][0]["results"]
+    assert entry["dataset"]["name"] == MAZE_TASK
+    assert entry["metrics"][0]["value"] == pytest.approx(result, abs=0.05)
+    assert "dvfb pretrain --agent fb --domain point_mass_maze --frames 2000" in text
+    assert "not comparable with the paper's tables" in text  # 2,000 frames at the small preset
+    info = yaml.safe_load((out / "config.json").read_text())  # JSON is YAML
+    assert (info["agent"], info["domain"], info["frames"], info["seed"]) == ("fb", "point_mass_maze", 2000, 0)
+    assert info["observation_space"]["shape"] == [4] and info["action_space"]["shape"] == [2]
+    assert info["inference_data"] is None and not (out / "inference_data.npz").exists()
+
+
+def json_result(run: Path) -> float:
+    import json
+
+    return json.loads((run / "zeroshot" / f"{MAZE_TASK}.json").read_text())["mean_return"]
+
+
+def test_an_export_is_not_a_run_and_a_report_passes_over_it(run, tmp_path, capsys):
+    out = tmp_path / "runs" / "export"
+    dvfb.load(run).save_pretrained(out)
+    shutil.copytree(run, tmp_path / "runs" / "fb", ignore=shutil.ignore_patterns("checkpoints"))
+    assert main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "report")]) == 0
+    capsys.readouterr()
+    assert main(["zeroshot", str(out), "--task", MAZE_TASK]) == 2
+    assert "is an exported model (dvfb export), not a run directory" in capsys.readouterr().err
+
+
+def test_bad_exports_are_one_line_and_change_nothing(run, tmp_path, capsys):
+    def fails(argv, message):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], (argv, err)
+
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    (taken / "notes.txt").write_text("keep")
+    fails(["export", str(run), "--out", str(taken)], "is not empty; pass --overwrite")
+    fails(["export", str(run), "--out", str(taken), "--overwrite"], "holds something else than an exported model")
+    assert [p.name for p in taken.iterdir()] == ["notes.txt"]
+    fails(["export", str(run), "--out", str(taken / "notes.txt")], "is a file")
+    fails(["export", str(run), "--out", str(tmp_path / "new"), "--snapshot", "7"], "has no snapshot at 7 frames")
+    fails(["export", str(tmp_path / "nope"), "--out", str(tmp_path / "new")], "does not exist")
+    bare = tmp_path / "bare"
+    shutil.copytree(run, bare, ignore=shutil.ignore_patterns("checkpoints"))
+    fails(["export", str(bare), "--out", str(tmp_path / "new"), "--with-inference-data"], "no pre-training replay")
+    fails(["push", str(run), "--repo", "org/name"], "is not an exported model")
+    assert not (tmp_path / "new").exists()
+    first = tmp_path / "first"
+    assert main(["export", str(run), "--out", str(first)]) == 0
+    capsys.readouterr()
+    before = {p.name: p.read_bytes() for p in first.iterdir()}
+    fails(["export", str(run), "--out", str(first)], "pass --overwrite")
+    assert {p.name: p.read_bytes() for p in first.iterdir()} == before
+    assert main(["export", str(run), "--out", str(first), "--overwrite"]) == 0
+
+
+def test_push_without_the_hub_extra_says_how_to_install_it(run, tmp_path):
+    out = dvfb.load(run).save_pretrained(tmp_path / "export")
+    done = subprocess.run([sys.executable, "-c", "import sys; sys.modules['huggingface_hub'] = None; "
+                           "from dvfb.cli import main; sys.exit(main(sys.argv[1:]))", "push", str(out), "--repo",
+                           "org/name"], capture_output=True, text=True)
+    assert done.returncode == 2
+    assert done.stderr.strip() == ("dvfb push: error: dvfb push needs the optional hub extra: pip install 'dvfb[hub]' "
+                                   "(huggingface_hub)")
+
+
+def test_a_read_only_disk_is_one_line_and_leaves_nothing(run, small_disk, capsys):
+    subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], check=True)
+    assert main(["export", str(run), "--out", str(small_disk / "model")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Read-only file system" in err[0], err
+    assert list(small_disk.iterdir()) == []
