@@ -3,7 +3,7 @@ N members of a method at the small preset, walker's sizes, under torch.profiler,
 time summed by kind (matrix products, element-wise and reductions, autograd bookkeeping, optimiser,
 copies) and the Python that the profiler does not attribute to an operator.
 
-    python bench/profile_members.py --agents dvfb,fb --members 1,2,5 --threads 2
+    python bench/profile_members.py --agents dvfb,fb --members 1,2,5 --threads 2 --matmuls
 
 Prints one table per agent and N; --output writes the rows as JSON. Figures, not tests.
 """
@@ -82,6 +82,40 @@ def profile(agent_name: str, n: int, warmup: int, repeats: int) -> dict:
             "ms_by_kind": dict(sorted(by_kind.items())), "ms_outside_operators": max(0.0, wall - in_ops)}
 
 
+def _gflops(fn, flop: float, reps: int) -> float:
+    for _ in range(5):
+        fn()
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        fn()
+    return flop * reps / (time.perf_counter() - t0) / 1e9
+
+
+def _one_thread_mm(_) -> float:
+    torch.set_num_threads(1)
+    a, b = torch.randn(256, 256), torch.randn(256, 512)
+    return _gflops(lambda: a @ b, 2 * 256 * 256 * 512, 2000)
+
+
+def matmul_rates(members: int = 5) -> dict:
+    """GFLOP/s of the small preset's typical product (256 x 256 by 256 x 512): one product on 1 and
+    2 threads, the members' batched product on 2 threads, and one product in each of 2 processes
+    at once (1 thread each), the schedule separate runs get."""
+    import multiprocessing
+
+    a, b = torch.randn(256, 256), torch.randn(256, 512)
+    am, bm = torch.randn(members, 256, 256), torch.randn(members, 256, 512)
+    rates = {}
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        rates[f"mm, {threads} thread(s)"] = _gflops(lambda: a @ b, 2 * 256 * 256 * 512, 1000)
+    rates[f"bmm of {members} members, 2 threads"] = _gflops(lambda: torch.bmm(am, bm),
+                                                            members * 2 * 256 * 256 * 512, 200)
+    with multiprocessing.get_context("spawn").Pool(2) as pool:
+        rates["mm, 2 processes x 1 thread (sum)"] = sum(pool.map(_one_thread_mm, [0, 1]))
+    return rates
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--agents", default="dvfb,fb")
@@ -90,9 +124,13 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--repeats", type=int, default=10)
     p.add_argument("--output", type=Path, default=None)
+    p.add_argument("--matmuls", action="store_true", help="also the product rates of the schedules (GFLOP/s)")
     args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
     rows = []
+    if args.matmuls:
+        for name, rate in matmul_rates().items():
+            print(f"{name}: {rate:.0f} GFLOP/s", flush=True)
+    torch.set_num_threads(args.threads)
     for agent in args.agents.split(","):
         for n in map(int, args.members.split(",")):
             row = profile(agent, n, args.warmup, args.repeats)
