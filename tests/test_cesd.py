@@ -19,18 +19,17 @@ from dvfb.nets import RunningMeanStd
 from dvfb.protocols.urlb import DDPGFinetuneConfig, DDPGFinetuner
 from dvfb.data import Batch
 from dvfb.rewards.cesd import CeSDReward, partitioned_apt_reward
+from tiny import random_batch
 
 OBS, ACT, K = 5, 3, 4
 TINY = dict(hidden_dim=32, critic_trunk_dim=16, critic_hidden_dim=32)
 
 
 def make_batch(n: int = 32, skills: int = K, seed: int = 0) -> Batch:
-    g = torch.Generator().manual_seed(seed)
-    idx = torch.randint(0, skills, (n,), generator=g)
-    z = F_nn.one_hot(idx, skills).float()
-    return Batch(obs=torch.randn(n, OBS, generator=g), action=torch.rand(n, ACT, generator=g) * 2 - 1,
-                 reward=torch.randn(n, 1, generator=g), discount=torch.full((n, 1), 0.99 ** 3),
-                 next_obs=torch.randn(n, OBS, generator=g), future_obs=None, z=z)
+    def one_hot_skills(n, generator):
+        return F_nn.one_hot(torch.randint(0, skills, (n,), generator=generator), skills).float()
+
+    return random_batch(n, seed, obs_dim=OBS, action_dim=ACT, step=None, skill=one_hot_skills, discount=0.99 ** 3)
 
 
 def tiny_core(skills: int = K) -> CeSDCore:

@@ -15,15 +15,14 @@ from dvfb.agents.ddpg import DDPGConfig
 from dvfb.data import Batch
 from dvfb.rewards.becl import BeCLReward, becl_contrastive_loss
 from dvfb.rewards.comsd import ComSDReward, diversity_reward, skill_weight
+from tiny import random_batch
 
 OBS, ACT, H, B = 5, 3, 32, 32
 
 
 def make_batch(n: int, z: torch.Tensor, seed: int = 0) -> Batch:
-    g = torch.Generator().manual_seed(seed)
-    return Batch(obs=torch.randn(n, OBS, generator=g), action=torch.rand(n, ACT, generator=g) * 2 - 1,
-                 reward=torch.zeros(n, 1), discount=torch.full((n, 1), 0.99 ** 3),
-                 next_obs=torch.randn(n, OBS, generator=g), future_obs=None, z=z)
+    return random_batch(n, seed, obs_dim=OBS, action_dim=ACT, step=None, skill=z, reward="zeros",
+                        discount=0.99 ** 3)
 
 
 def one_hot_skills(n: int, dim: int, seed: int = 0) -> torch.Tensor:

@@ -23,10 +23,10 @@ from dvfb.workflows.datasets import export_run
 from dvfb.errors import CheckpointError, ConfigError
 from dvfb.data import Column, ReplayBuffer
 from dvfb.runs import load_checkpoint
+from tiny import tiny_flags
 
 MAZE = "point_mass_maze_reach_top_left"
-TINY = ["--fb.z-dim", "8", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
-        "--fb.batch-size", "32", "--log-every", "250", "--torch-threads", "1"]
+TINY = [*tiny_flags("fb"), "--log-every", "250", "--torch-threads", "1"]
 
 
 def pretrain(run: Path, frames: int, *extra: str) -> None:

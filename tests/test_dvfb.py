@@ -15,7 +15,7 @@ from dvfb.rewards.contrastive import contrastive_entropy_reward, nce_loss
 from dvfb.rewards.rnd import RNDReward
 from dvfb.nets import sample_z_prior, training_action
 from dvfb.data import Batch
-from tiny import ACT, D, H, OBS, tiny_exploration
+from tiny import ACT, D, H, OBS, random_batch, tiny_exploration
 from tiny import tiny_config as shared_tiny_config
 
 
@@ -27,13 +27,7 @@ def tiny_config(**overrides) -> FBConfig:
 
 
 def make_batch(n: int, seed: int = 0, future: bool = True) -> Batch:
-    g = torch.Generator().manual_seed(seed)
-    obs = torch.randn(n, OBS, generator=g)
-    next_obs = obs + 0.3 * torch.randn(n, OBS, generator=g)
-    future_obs = next_obs + 0.3 * torch.randn(n, OBS, generator=g) if future else None
-    action = torch.rand(n, ACT, generator=g) * 2 - 1
-    return Batch(obs, action, torch.randn(n, 1, generator=g), torch.full((n, 1), 0.99), next_obs,
-                 future_obs, None)
+    return random_batch(n, seed, future=future)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -25,20 +25,14 @@ from dvfb.agents.fb import (
 )
 from dvfb.nets import project_to_sphere, sample_z_prior, skill_values, training_action
 from dvfb.data import Batch
-from tiny import ACT, D, OBS, tiny_config, tiny_exploration
+from tiny import ACT, D, OBS, random_batch, tiny_config, tiny_exploration
 
 
 F64 = torch.float64
 
 
 def make_batch(n: int, seed: int = 0, discount=None) -> Batch:
-    g = torch.Generator().manual_seed(seed)
-    obs = torch.randn(n, OBS, generator=g)
-    next_obs = obs + 0.3 * torch.randn(n, OBS, generator=g)
-    future_obs = next_obs + 0.3 * torch.randn(n, OBS, generator=g)
-    action = torch.rand(n, ACT, generator=g) * 2 - 1
-    disc = torch.full((n, 1), 0.99) if discount is None else discount
-    return Batch(obs, action, torch.randn(n, 1, generator=g), disc, next_obs, future_obs, None)
+    return random_batch(n, seed, future=True, discount=0.99 if discount is None else discount)
 
 
 def perturb_(module, scale=0.05, seed=0):

@@ -19,6 +19,7 @@ from dvfb.protocols.zero_shot import InferenceConfig
 from dvfb.protocols.dual_value import DualValueFinetuner, FinetuneConfig
 from dvfb.nets import RunningMeanStd, project_to_sphere
 from dvfb.data import Batch
+from tiny import random_batch
 
 
 OBS, ACT, D, H, E = 5, 3, 8, 32, 16
@@ -40,12 +41,7 @@ def make_agent(kind="dvfb", **overrides):
 
 
 def make_batch(n: int, seed: int = 0, reward=None) -> Batch:
-    g = torch.Generator().manual_seed(seed)
-    obs = torch.randn(n, OBS, generator=g)
-    next_obs = obs + 0.3 * torch.randn(n, OBS, generator=g)
-    action = torch.rand(n, ACT, generator=g) * 2 - 1
-    r = torch.rand(n, 1, generator=g) + 0.1 if reward is None else reward
-    return Batch(obs, action, r, torch.full((n, 1), 0.99), next_obs, None, None)
+    return random_batch(n, seed, reward="positive" if reward is None else reward)
 
 
 def constant_batch(n: int, reward: float, dtype=torch.float32) -> Batch:

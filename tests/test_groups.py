@@ -20,7 +20,7 @@ from dvfb.training.metrics import MetricWindow
 from dvfb.workflows.pretrain import pretrain
 from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run
-from tiny import tiny_run_config
+from tiny import tiny_run_config, tiny_flags
 
 SEEDS = [0, 1]
 
@@ -184,8 +184,7 @@ def _tree(root):
 @pytest.mark.slow
 def test_a_group_resume_with_finished_and_unfinished_members_is_refused_and_changes_nothing(tmp_path):
     template = str(tmp_path / "r_{seed}")
-    tiny = ["--fb.z-dim", "8", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
-            "--fb.batch-size", "32", "--update-every", "4", "--replay-capacity", "2000", "--torch-threads", "1"]
+    tiny = [*tiny_flags("fb"), "--update-every", "4", "--replay-capacity", "2000", "--torch-threads", "1"]
     # Checkpoints come at episode ends: the maze's are every 1000 steps.
     assert _cli("--seeds", "0,1", "--run-dir", template, "--frames", "1000", *tiny).returncode == 0
     alone = _cli("--seed", "0", "--run-dir", str(tmp_path / "r_0"), "--frames", "2000", "--resume", *tiny)

@@ -22,13 +22,13 @@ from dvfb.errors import CheckpointError
 from dvfb.runs import load_checkpoint, save_checkpoint
 from dvfb.runs.layout import FINETUNE, PRETRAIN, FinetuneRun, PretrainRun, run_kind
 from dvfb.runs.migrations import check_resume_format, check_snapshot_format, migrate_training_state
+from tiny import tiny_flags
 
 FIXTURES = Path(__file__).parent / "fixtures" / "v0.1.0"
 MAZE = "point_mass_maze_reach_top_left"
 # The flags the fixtures were made with (fixtures/v0.1.0/README.md): a resume repeats them.
-TINY_FB = ["--fb.z-dim", "8", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
-           "--fb.batch-size", "32"]
-TINY_EX = ["--exploration.rnd-rep-dim", "16", "--exploration.contrastive-hidden-dim", "32", "--exploration.ce-k", "4"]
+TINY_FB = tiny_flags("fb")
+TINY_EX = tiny_flags("dvfb", ("exploration",))
 COMMON = ["--domain", "point_mass_maze", "--seed-frames", "500", "--update-every", "4", "--checkpoint-every", "1000",
           "--log-every", "250", "--replay-capacity", "2000", "--snapshot-frames", "1000", "--torch-threads", "1",
           "--no-progress"]

@@ -31,19 +31,13 @@ from dvfb.nets import (
     training_action,
 )
 from dvfb.data import Batch
-from tiny import ACT, D, E, H, OBS, tiny_config
+from tiny import ACT, D, E, H, OBS, random_batch, tiny_config
 
 
 
 
 def make_batch(n: int, seed: int = 0, obs_dim: int = OBS, action_dim: int = ACT) -> Batch:
-    g = torch.Generator().manual_seed(seed)
-    obs = torch.randn(n, obs_dim, generator=g)
-    next_obs = obs + 0.1 * torch.randn(n, obs_dim, generator=g)
-    future_obs = next_obs + 0.1 * torch.randn(n, obs_dim, generator=g)
-    action = torch.rand(n, action_dim, generator=g) * 2 - 1
-    return Batch(obs, action, torch.randn(n, 1, generator=g), torch.full((n, 1), 0.99), next_obs,
-                 future_obs, None)
+    return random_batch(n, seed, obs_dim=obs_dim, action_dim=action_dim, step=0.1, future=True)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -22,9 +22,9 @@ from dvfb.cli import main
 from dvfb.errors import ConfigError
 from dvfb.workflows.datasets import export_run
 from dvfb.runs import load_checkpoint, load_snapshot
+from tiny import tiny_flags
 
-TINY_FB = ["--fb.z-dim", "8", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
-           "--fb.batch-size", "32"]
+TINY_FB = tiny_flags("fb")
 TINY_SF = [flag.replace("--fb.", "--sf.") for flag in TINY_FB]
 COMMON = ["--domain", "point_mass_maze", "--log-every", "50", "--torch-threads", "1", "--no-progress"]
 

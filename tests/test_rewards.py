@@ -15,16 +15,13 @@ from dvfb.rewards.disagreement import DisagreementConfig, DisagreementReward
 from dvfb.rewards.icm import ICMAPTConfig, ICMAPTReward
 from dvfb.rewards.knn import KNNConfig, ParticleEntropy, nearest_distances, particle_entropy
 from dvfb.rewards.proto import ProtoConfig, ProtoReward, sample_one_per_row, sinkhorn_knopp
+from tiny import random_batch
 
 OBS, ACT = 4, 3
 
 
 def make_batch(n: int = 8, seed: int = 0, obs_dim: int = OBS, action_dim: int = ACT) -> Batch:
-    g = torch.Generator().manual_seed(seed)
-    obs = torch.randn(n, obs_dim, generator=g)
-    next_obs = obs + 0.3 * torch.randn(n, obs_dim, generator=g)
-    action = torch.rand(n, action_dim, generator=g) * 2 - 1
-    return Batch(obs, action, torch.zeros(n, 1), torch.full((n, 1), 0.99), next_obs, None, None)
+    return random_batch(n, seed, obs_dim=obs_dim, action_dim=action_dim, reward="zeros")
 
 
 def loop_knn(rep: torch.Tensor, k: int) -> list[list[float]]:

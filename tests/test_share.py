@@ -17,10 +17,10 @@ import yaml
 
 import dvfb
 from dvfb.cli import main
+from tiny import tiny_flags
 
 MAZE_TASK = "point_mass_maze_reach_top_left"
-TINY = ["--fb.z-dim", "8", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
-        "--fb.batch-size", "32", "--torch-threads", "1", "--update-every", "4", "--checkpoint-every", "1000"]
+TINY = [*tiny_flags("fb"), "--torch-threads", "1", "--update-every", "4", "--checkpoint-every", "1000"]
 
 
 @pytest.fixture(scope="module")

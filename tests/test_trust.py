@@ -25,10 +25,9 @@ from dvfb.errors import NonFiniteLossError
 from dvfb.data import Batch
 from dvfb.runs import RunDir, latest_checkpoint, load_checkpoint, load_snapshot, save_checkpoint
 from dvfb.training.metrics import MetricWindow
-from tiny import OBS, ACT, tiny_config
+from tiny import OBS, ACT, tiny_config, tiny_flags
 
-TINY = ["--fb.z-dim", "8", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
-        "--fb.batch-size", "32", "--log-every", "250", "--torch-threads", "1"]
+TINY = [*tiny_flags("fb"), "--log-every", "250", "--torch-threads", "1"]
 MAZE = ["--domain", "point_mass_maze", "--seed-frames", "500", "--update-every", "4", "--checkpoint-every", "1000"]
 FAST_INFERENCE = ["--inference.steps", "200", "--inference.random-action-steps", "100",
                   "--inference.samples", "200", "--inference.eval-episodes", "1"]

@@ -35,6 +35,7 @@ from dvfb.execution import NetRunner, PerfConfig
 from dvfb.errors import ConfigError
 from dvfb.nets import TwinHead
 from dvfb.data import Batch, ReplayBuffer
+from tiny import random_batch
 
 OBS, ACT, D, H, E, HB = 7, 3, 8, 24, 12, 20
 
@@ -53,13 +54,7 @@ def small_exploration(**overrides) -> ExplorationConfig:
 
 
 def make_batch(n: int, seed: int, dtype=torch.float64) -> Batch:
-    g = torch.Generator().manual_seed(seed)
-    obs = torch.randn(n, OBS, generator=g, dtype=dtype)
-    next_obs = obs + 0.3 * torch.randn(n, OBS, generator=g, dtype=dtype)
-    future_obs = next_obs + 0.3 * torch.randn(n, OBS, generator=g, dtype=dtype)
-    action = torch.rand(n, ACT, generator=g, dtype=dtype) * 2 - 1
-    discount = 0.9 + 0.1 * torch.rand(n, 1, generator=g, dtype=dtype)  # per-row D
-    return Batch(obs, action, torch.randn(n, 1, generator=g, dtype=dtype), discount, next_obs, future_obs, None)
+    return random_batch(n, seed, obs_dim=OBS, action_dim=ACT, future=True, discount="random", dtype=dtype)  # per-row D
 
 
 @pytest.fixture

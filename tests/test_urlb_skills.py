@@ -23,17 +23,13 @@ from dvfb.rewards.diayn import DIAYNConfig, DIAYNReward
 from dvfb.rewards.knn import KNNConfig
 from dvfb.rewards.smm import SMMConfig, SMMReward
 from dvfb.skills import SkillSpec
+from tiny import random_batch
 
 OBS, ACT, H, N = 5, 3, 32, 16
 
 
 def make_batch(skill: SkillSpec, n: int = N, seed: int = 0) -> Batch:
-    g = torch.Generator().manual_seed(seed)
-    obs = torch.randn(n, OBS, generator=g)
-    next_obs = obs + 0.5 * torch.randn(n, OBS, generator=g)
-    action = torch.rand(n, ACT, generator=g) * 2 - 1
-    z = skill.sample(n, generator=g)
-    return Batch(obs, action, torch.randn(n, 1, generator=g), torch.full((n, 1), 0.99 ** 3), next_obs, None, z)
+    return random_batch(n, seed, obs_dim=OBS, action_dim=ACT, step=0.5, skill=skill.sample, discount=0.99 ** 3)
 
 
 def relu_mlp(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:

@@ -80,3 +80,67 @@ def filled_replay(agent, steps: int = 400, seed: int = 0):
         obs, reward, terminated, _, _ = env.step(action)
         replay.add(action, reward, 0.0 if terminated else 1.0, obs, None if skill is None else skill[0].numpy())
     return replay
+
+
+def tiny_flags(agent: str, sections: tuple[str, ...] | None = None) -> list[str]:
+    """``dvfb pretrain`` flags of :data:`TINY_SECTIONS`' widths for ``agent``'s sections (or only
+    ``sections`` of them): the command-line twin of :func:`tiny_run_config`."""
+    from dvfb.agents import get_spec
+    from dvfb.config import flag_name
+
+    flags = []
+    for section in get_spec(agent).sections:
+        if sections is not None and section not in sections:
+            continue
+        for key, value in TINY_SECTIONS.get(section, {}).items():
+            flags += [flag_name(f"{section}.{key}"), str(value)]
+    return flags
+
+
+def random_batch(n: int, seed: int = 0, *, obs_dim: int = OBS, action_dim: int = ACT, step: float | None = 0.3,
+                 future: bool = False, reward="normal", discount=0.99, skill=None, dtype=None):
+    """A batch of ``n`` random transitions from a seeded generator, drawn in this order: ``obs``;
+    ``next_obs`` (``obs`` plus ``step`` times noise; with ``step`` None, independent of ``obs``);
+    ``future_obs`` (``next_obs`` plus noise, with ``future``); actions uniform in [-1, 1]; the skill
+    (``skill(n, generator)``, or a fixed tensor); the discount (a number, ``"random"`` in [0.9, 1),
+    or a tensor); the reward (``"normal"``, ``"positive"`` (uniform + 0.1), ``"zeros"`` or a tensor)."""
+    import torch
+
+    from dvfb.data import Batch
+
+    g = torch.Generator().manual_seed(seed)
+    kw = {"generator": g, "dtype": dtype}
+    obs = torch.randn(n, obs_dim, **kw)
+    next_obs = torch.randn(n, obs_dim, **kw) if step is None else obs + step * torch.randn(n, obs_dim, **kw)
+    future_obs = next_obs + (step or 0.3) * torch.randn(n, obs_dim, **kw) if future else None
+    action = torch.rand(n, action_dim, **kw) * 2 - 1
+    z = skill(n, generator=g) if callable(skill) else skill
+    if isinstance(discount, str):
+        discount = 0.9 + 0.1 * torch.rand(n, 1, **kw)
+    elif not isinstance(discount, torch.Tensor):
+        discount = torch.full((n, 1), float(discount), dtype=dtype)
+    if isinstance(reward, str):
+        reward = {"normal": lambda: torch.randn(n, 1, **kw), "positive": lambda: torch.rand(n, 1, **kw) + 0.1,
+                  "zeros": lambda: torch.zeros(n, 1, dtype=dtype)}[reward]()
+    return Batch(obs, action, reward, discount, next_obs, future_obs, z)
+
+
+def replayed_return(run, task: str, z, seed: int) -> float:
+    """The return of one mean-action episode of ``run``'s model with the skill ``z`` (None for a
+    single policy) in ``task``'s environment made with ``seed``, stepped here by hand: what a
+    zero-shot result's first return must be."""
+    import numpy as np
+
+    import dvfb
+    from dvfb import envs
+
+    model = dvfb.load(run)
+    env = envs.make(task, seed=seed)
+    obs, _ = env.reset()
+    total, done = 0.0, False
+    skill = None if z is None else np.asarray(z, dtype=np.float32)
+    while not done:
+        obs, reward, terminated, truncated, _ = env.step(model.act(obs, skill))
+        total += float(reward)
+        done = terminated or truncated
+    return total
