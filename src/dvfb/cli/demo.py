@@ -20,6 +20,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from dvfb import envs
     from dvfb.workflows.video import record_video
     from dvfb.errors import DvfbError
+    from dvfb.runs.export import unpack_export
     from dvfb.runs.presets import preset_config
     from dvfb.workflows.pretrain import pretrain
     from dvfb.workflows.zeroshot import random_policy_return, zeroshot
@@ -30,7 +31,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     provenance = json.loads((bundled / "provenance.json").read_text())
     if agent_dir.exists():
         shutil.rmtree(agent_dir)
-    shutil.copytree(bundled, agent_dir)
+    # The agent ships as an exported model (docs/sharing.md); the commands below take a run
+    # directory, so it is unpacked into one: its config and its one snapshot.
+    unpack_export(bundled, agent_dir, command=args.command_line)
+    shutil.copy(bundled / "provenance.json", agent_dir / "provenance.json")
     print(f"[demo] bundled agent: DVFB pre-trained on walker for {provenance['frames']} frames "
           f"({provenance['preset']} preset; how it was made: {agent_dir / 'provenance.json'})")
     inference = {"steps": args.inference_steps, "random_action_steps": args.inference_steps // 2,
@@ -62,14 +66,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def bundled_demo_run() -> Path:
-    """The pre-trained DVFB walker run shipped in the package (config, snapshot, provenance)."""
+    """The pre-trained DVFB walker agent shipped in the package: an exported model (safetensors,
+    config.json, model card; docs/sharing.md) and its provenance.json."""
     from importlib import resources
 
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.runs.layout import run_kind
+    from dvfb.runs.export import is_export
 
     path = Path(str(resources.files("dvfb") / "data" / "demo_walker_dvfb"))
-    if run_kind(path) is None:
+    if not is_export(path):
         raise ConfigError(f"the bundled demo agent is missing from the installation ({path})")
     return path
 

@@ -182,6 +182,7 @@ def write_export(out: str | os.PathLike, model: Model, config: PretrainConfig, *
             np.savez_compressed(out / INFERENCE_FILE, **inference_data)
         (out / CARD_FILE).write_text(model_card(info), encoding="utf-8")
         write_json_atomic(out / CONFIG_FILE, info)  # last: a directory without it is no export
+        shutil.copymode(out / CONFIG_FILE, out / MODEL_FILE)  # the umask's mode, as the other files
     except BaseException as exc:
         if created:
             shutil.rmtree(out, ignore_errors=True)
@@ -253,6 +254,23 @@ def load_export(path: str | os.PathLike, device: str | torch.device = "cpu") -> 
         except (OSError, ValueError) as exc:
             raise CheckpointError(f"{path / INFERENCE_FILE} cannot be read: {exc}") from exc
     return Export(path, model, config, info, data)
+
+
+def unpack_export(path: str | os.PathLike, run_dir: str | os.PathLike, overwrite: bool = False,
+                  command: list[str] | None = None) -> PretrainRun:
+    """A run directory made from an exported model: its run config and one snapshot, of the
+    export's frames (no replay, no checkpoint), which ``dvfb zeroshot``, ``finetune`` and ``video``
+    take as they take a finished run's (``dvfb demo`` unpacks its bundled agent so)."""
+    from dvfb.runs.checkpoints import save_snapshot
+    from dvfb.runs.layout import snapshot_name
+    from dvfb.runs.snapshots import snapshot_state
+
+    export = load_export(path, "cpu")
+    run = PretrainRun.create(run_dir, export.config, overwrite=overwrite, command=command)
+    modules = {name: module.state_dict() for name, module in export.model.snapshot_modules().items()}
+    frames = int(export.info["frames"])
+    save_snapshot(run, snapshot_state(export.model, export.config, frames, modules), snapshot_name(frames))
+    return run
 
 
 def describe_export(path: Path) -> str:

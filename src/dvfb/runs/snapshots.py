@@ -20,12 +20,13 @@ from dvfb.runs.run_config import PretrainConfig, agent_sections, run_config_from
 SNAPSHOT_KIND = "pretrained_agent"
 
 
-def snapshot_state(agent: Agent, config: PretrainConfig, frames: int, modules: dict | None = None) -> dict:
-    """A self-describing snapshot: the agent's name, its run config, the dims, the format version
-    and the state of its pre-trained modules (``modules``: their state dicts, a group member's)."""
+def snapshot_state(agent: Agent | Model, config: PretrainConfig, frames: int, modules: dict | None = None) -> dict:
+    """A self-describing snapshot: the method's name, its run config, the dims, the format version
+    and the state of its pre-trained modules (``modules``: their state dicts, a group member's or a
+    model's; given with a :class:`Model`, which has no ``pretrained_modules``)."""
     if modules is None:
         modules = {k: m.state_dict() for k, m in agent.pretrained_modules().items()}
-    return {"kind": SNAPSHOT_KIND, "format": SNAPSHOT_FORMAT, "agent": agent.name, "domain": config.domain,
+    return {"kind": SNAPSHOT_KIND, "format": SNAPSHOT_FORMAT, "agent": config.agent, "domain": config.domain,
             "config": to_dict(config), "frames": frames, "obs_dim": agent.obs_dim, "action_dim": agent.action_dim,
             "modules": modules}
 
