@@ -108,6 +108,11 @@ def test_an_export_is_not_a_run_and_a_report_passes_over_it(run, tmp_path, capsy
     capsys.readouterr()
     assert main(["zeroshot", str(out), "--task", MAZE_TASK]) == 2
     assert "is an exported model (dvfb export), not a run directory" in capsys.readouterr().err
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert main(["pretrain", "--agent", "fb", "--domain", "point_mass_maze", "--frames", "600", "--seed-frames", "500",
+                 "--run-dir", str(out), "--overwrite"]) == 2
+    assert "refusing to overwrite" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
 def test_bad_exports_are_one_line_and_change_nothing(run, tmp_path, capsys):

@@ -93,6 +93,9 @@ class RunDir:
                         f"(no {CONFIG_FILE} or {META_FILE}); remove it yourself or choose another "
                         "run name"
                     )
+                if _is_export_config(path / CONFIG_FILE):
+                    raise RunDirError(f"refusing to overwrite {path}: it is an exported model (dvfb export), not a "
+                                      "run directory; choose another run name")
                 return True
         return False
 
@@ -249,6 +252,14 @@ class RunLock:
         """Undo the directory this lock created (a run that failed before writing anything)."""
         if self.created_directory and {p.name for p in self.path.iterdir()} <= {LOCK_FILE}:
             shutil.rmtree(self.path, ignore_errors=True)
+
+
+def _is_export_config(path: Path) -> bool:
+    try:
+        data = read_json(path)
+    except (RunDirError, OSError):
+        return False
+    return isinstance(data, dict) and data.get("format") == EXPORT_FORMAT
 
 
 def check_writable(directory: str | os.PathLike) -> None:
