@@ -5,15 +5,18 @@ from __future__ import annotations
 import argparse
 
 from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, progress_flag, protocol_overrides
+from dvfb.config import add_arguments, overrides_from_args
 
 def cmd_finetune(args: argparse.Namespace) -> int:
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.runs.layout import FinetuneRun
+    from dvfb.runs.wandb_sink import LogConfig
     from dvfb.workflows.finetune import finetune
 
     options = dict(snapshot=args.snapshot, seed=args.seed, name=args.name,
                    inference=protocol_overrides(args, "inference"), finetune=protocol_overrides(args, "finetune"),
-                   resume=args.resume, overwrite=args.overwrite, progress=args.progress)
+                   resume=args.resume, overwrite=args.overwrite, progress=args.progress,
+                   log=overrides_from_args(args, LogConfig, prefix="log."))
     many = len(args.run) > 1
     runs = finetune(args.run if many else args.run[0], args.task, **options)
     runs = runs if many else [runs]
@@ -45,4 +48,9 @@ def register(sub, agent: str) -> None:
     progress_flag(p)
     add_protocol_arguments(p, "inference")
     add_protocol_arguments(p, "finetune")
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
+    from dvfb.runs.wandb_sink import LogConfig
+
+    group = p.add_argument_group("logging options (default: the pre-training run's)")
+    add_arguments(group, LogConfig, prefix="log.")
     p.set_defaults(func=cmd_finetune)

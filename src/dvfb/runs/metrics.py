@@ -64,11 +64,15 @@ class MetricsLogger:
     (typically the step of the checkpoint being resumed) drops records with ``step >=
     purge_step`` that the interrupted process logged after that checkpoint, in the JSONL files
     and, through SummaryWriter's own ``purge_step``, in TensorBoard.
+
+    ``sink``: an optional observer of every record, e.g. a :class:`~dvfb.runs.wandb_sink.WandbSink`
+    (``sink.log(step, prefix, values)`` after the files are written, ``sink.close()`` on close).
     """
 
     def __init__(self, run: RunDir | str | os.PathLike, tensorboard: bool = True,
-                 purge_step: int | None = None) -> None:
+                 purge_step: int | None = None, sink: Any = None) -> None:
         self.run = _as_run_dir(run)
+        self._sink = sink
         self.run.metrics_dir.mkdir(parents=True, exist_ok=True)
         self._purge_step = purge_step
         self._files: dict[str, IO[str]] = {}
@@ -100,6 +104,8 @@ class MetricsLogger:
         if self._writer is not None:
             for name, value in values.items():
                 self._writer.add_scalar(f"{prefix}/{name}", value, global_step=step)
+        if self._sink is not None:
+            self._sink.log(step, prefix, values)
 
     def flush(self) -> None:
         for file in self._files.values():
@@ -114,6 +120,9 @@ class MetricsLogger:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+        if self._sink is not None:
+            sink, self._sink = self._sink, None
+            sink.close()
 
     def __enter__(self) -> MetricsLogger:
         return self

@@ -31,6 +31,7 @@ from dvfb.execution import DEVICES, PerfConfig
 from dvfb.files import read_json
 from dvfb.protocols import protocols_of
 from dvfb.runs.migrations import migrate_run_config
+from dvfb.runs.wandb_sink import LogConfig
 
 PRESETS = ("small", "paper", "code")
 DEFAULT_AGENT = "dvfb"
@@ -68,6 +69,9 @@ class PretrainConfig:
     log_every: int = param(1000, "Read metrics back from the device and log them every this many steps.", at_least=1)
     perf: PerfConfig = field(default_factory=PerfConfig,
                              metadata={"help": "How the pre-training updates execute (precision, compilation)."})
+    log: LogConfig = field(default_factory=LogConfig,
+                           metadata={"help": "Where the metrics go besides metrics/ and tb/: Weights & Biases "
+                                             "(docs/methods.md, \"Logging to Weights & Biases\")."})
 
     def check(self) -> None:
         """Relations between fields (ranges are checked per field)."""
@@ -164,6 +168,8 @@ class FinetuneRunConfig:
     snapshot: int = param(0, "Pre-training snapshot (frames) the agent starts from.")
     seed: int = seed_param(0, "Seed of the task environment and the fine-tuning randomness.")
     device: str = param("auto", "Torch device.")
+    log: LogConfig = field(default_factory=LogConfig,
+                           metadata={"help": "Where the metrics go besides metrics/ and tb/: Weights & Biases."})
 
 
 @functools.cache

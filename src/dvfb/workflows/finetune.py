@@ -36,6 +36,7 @@ from dvfb.runs.layout import FinetuneRun, PretrainRun
 from dvfb.runs.records import Curve, FinetuneSummary, curve_point
 from dvfb.runs.run_config import FinetuneRunConfig, finetune_run_config_class
 from dvfb.runs.snapshots import load_model
+from dvfb.runs.wandb_sink import require_wandb
 from dvfb.training.evaluation import Evaluation, evaluate
 from dvfb.training.observers import ProgressCount, ReplayWriter
 from dvfb.training.progress import Progress, notify
@@ -51,7 +52,7 @@ RESUME_KIND = "finetune_resume"
 def finetune(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot: int | None = None,
              inference: dict | None = None, finetune: dict | None = None, seed: int | None = None,
              name: str | None = None, resume: bool = False, overwrite: bool = False, progress: bool | None = None,
-             device: str | None = None):
+             device: str | None = None, log: dict | None = None):
     """Fine-tune the pre-trained run ``run_dir`` on ``task`` (returns its fine-tuning run,
     :class:`~dvfb.runs.layout.FinetuneRun`), or, given a list of runs, a group (docs/members.md) in
     lockstep in this process (returns the list of their fine-tuning runs).
@@ -66,6 +67,9 @@ def finetune(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
     a failed resume changes no file and resuming a finished run is a no-op. In a group, a member
     whose loss or action goes non-finite stops alone (its one line); the others finish, and the call
     then raises :class:`~dvfb.errors.NonFiniteLossError`.
+
+    ``log``: overrides of the pre-training run's ``log`` section (``{"wandb": True}``: also log to
+    Weights & Biases, docs/methods.md, "Logging to Weights & Biases").
     """
     if resume and overwrite:
         raise ConfigError("--resume and --overwrite contradict each other: pass one of them")
@@ -75,7 +79,7 @@ def finetune(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
         raise ConfigError("a group fine-tuning needs at least one run")
     if len({Path(p).resolve() for p in run_paths}) != len(run_paths):
         raise ConfigError("a run is listed twice: the members of a group are distinct runs")
-    members = [_prepared(p, task, snapshot, inference, finetune, seed, name, resume, device) for p in run_paths]
+    members = [_prepared(p, task, snapshot, inference, finetune, seed, name, resume, device, log) for p in run_paths]
     if many:
         _check_group(members)
     locks = [RunLock(m.path) for m in members]
@@ -104,7 +108,7 @@ class _Member:
     task: str
 
 
-def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume, device) -> _Member:
+def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume, device, log=None) -> _Member:
     """Everything :func:`finetune` checks before it takes the run's lock."""
     run = open_run(run_path)
     config = run.config
@@ -114,7 +118,8 @@ def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume,
         pretrain_run=str(run.path), agent=config.agent, domain=config.domain, task=task, snapshot=snapshot,
         seed=config.seed if seed is None else seed, device=str(model.device),
         inference=merge(config.inference, inference or {}, "inference."),
-        finetune=merge(config.finetune, finetune or {}, "finetune."))
+        finetune=merge(config.finetune, finetune or {}, "finetune."), log=merge(config.log, log or {}, "log."))
+    require_wandb(run_config.log)
     finetuner_cls = finetuner_class(get_spec(config.agent).finetuner)
     finetuner_cls.check(model, run_config.finetune)
     check_replay(run_config.finetune.replay_capacity, "--finetune.replay-capacity", finetuner_cls.needs_of(model),
@@ -206,7 +211,8 @@ class FinetuneSession(RunSession):
     tag = "finetune"
     budget_flag = "--finetune.frames"
     # pretrain_run: where the pre-training run is, which changes when its directory moves.
-    resumable = ("device", "finetune.frames", "pretrain_run")
+    # log: where the metrics are sent besides the run directory (docs/methods.md, "Logging to Weights & Biases").
+    resumable = ("device", "finetune.frames", "pretrain_run", "log")
 
     def __init__(self, member: _Member, resume: bool, overwrite: bool):
         self.member, self.model = member, member.model
@@ -223,6 +229,10 @@ class FinetuneSession(RunSession):
     @property
     def device(self):
         return self.model.device
+
+    def wandb_name(self) -> str:
+        """The W&B run's name: the pre-training run's directory and this run's name under it."""
+        return f"{self.member.run.path.resolve().name}/finetune/{self.run.path.name}"
 
     def begin(self) -> None:
         member, model, cfg, state = self.member, self.model, self.cfg, self.state

@@ -51,6 +51,7 @@ from dvfb.runs.migrations import migrate_training_state
 from dvfb.runs.records import PretrainSummary
 from dvfb.runs.run_config import PretrainConfig
 from dvfb.runs.snapshots import snapshot_state
+from dvfb.runs.wandb_sink import require_wandb
 from dvfb.training.observers import ProgressCount, ReplayWriter
 from dvfb.training.progress import Progress, notify, progress_bars
 from dvfb.training.rollout import Lane, rollout
@@ -172,6 +173,7 @@ def _checked(config: PretrainConfig, run_paths: list[Path], resume: bool, overwr
         raise ConfigError("--resume and --overwrite contradict each other: --resume continues the run in "
                           f"{run_paths[0]}, --overwrite deletes it; pass one of them")
     envs.check_domain(config.domain)
+    require_wandb(config.log)
     for run_path in run_paths:
         if resume:
             RunDir.open(run_path)  # names what is missing
@@ -247,7 +249,8 @@ class PretrainSession(RunSession):
     phase = "pre-training"
     tag = "pretrain"
     budget_flag = "--frames"
-    resumable = ("frames", "device", "torch_threads", "log_every", "perf.compile", "perf.cuda_graphs")
+    # log: where the metrics are sent besides the run directory (docs/methods.md, "Logging to Weights & Biases").
+    resumable = ("frames", "device", "torch_threads", "log_every", "perf.compile", "perf.cuda_graphs", "log")
 
     def __init__(self, config, run_path, resume, overwrite, command, rng, env, agent, episode_length, columns,
                  dataset=None, dataset_info=None):

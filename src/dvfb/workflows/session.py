@@ -24,6 +24,7 @@ from dvfb.errors import CheckpointError, ConfigError
 from dvfb.nets.members import member_slice
 from dvfb.runs import MetricsLogger, load_checkpoint, remove_orphaned_checkpoints, save_checkpoint
 from dvfb.runs.migrations import RESUME_FORMAT, check_resume_format
+from dvfb.runs.wandb_sink import WandbSink
 from dvfb.training.metrics import MetricWindow
 from dvfb.training.progress import notify
 from dvfb.training.rollout import EpisodeState, Lane
@@ -189,12 +190,24 @@ class RunSession:
     # Logging -------------------------------------------------------------------------------------
     def start_logging(self, resumed: bool, hint=None) -> None:
         # Records up to the checkpointed step belong to the restored state; later ones are redone.
-        self.logger = MetricsLogger(self.run, purge_step=self.step + 1 if resumed else None)
+        self.logger = MetricsLogger(self.run, purge_step=self.step + 1 if resumed else None, sink=self.wandb_sink())
         self.window = MetricWindow(hint)
         if resumed:
             self.window.load_state(self.window_state)
         self.started = time.time()
         self.start_step = self.step
+
+    def wandb_sink(self) -> WandbSink | None:
+        """The run's W&B run when its config asks for one (``--log.wandb``; docs/methods.md, "Logging to
+        Weights & Biases"): named :meth:`wandb_name`, with the run config as its config."""
+        log = getattr(self.config, "log", None)
+        if log is None or not log.wandb:
+            return None
+        return WandbSink(self.run, log, to_dict(self.config), name=self.wandb_name(), job_type=self.tag)
+
+    def wandb_name(self) -> str:
+        """The W&B run's name: the run directory's."""
+        return self.run.path.resolve().name
 
     def log_window(self, step: int, extra: dict | None = None) -> None:
         """The window's means as a ``train`` record at ``step`` (nothing when it is empty)."""
