@@ -8,6 +8,8 @@
 * :mod:`~dvfb.analysis.aggregate`, :mod:`~dvfb.analysis.aggregate_report`,
   :mod:`~dvfb.analysis.normalise` -- normalised scores, aggregates with intervals, profiles;
 * :mod:`~dvfb.analysis.statistics` -- the statistics of the analyses (rank correlations, coverage).
+* :mod:`~dvfb.analysis.paper` -- the paper's published numbers (package data) beside a report's
+  domain averages (``dvfb report --paper``, docs/reproduce.md).
 
 Analysis works on files: it reads runs through :mod:`dvfb.runs` and imports no workflow. The
 analyses that roll agents out (``dvfb analyze-value``, ``analyze-exploration``, ``video``) are

@@ -14,7 +14,10 @@ and optional random-policy files. Outputs, in ``out_dir``:
   ``table1_zeroshot_minmax.csv``, likewise for Table 2; :mod:`dvfb.analysis.normalise`);
 * ``aggregates_<kind>.md/.csv`` and ``profiles_<kind>.png`` for ``kind`` zeroshot and finetune:
   IQM, mean, median, optimality gap and the probability of improvement with stratified bootstrap
-  intervals, and performance profiles (:mod:`dvfb.analysis.aggregate_report`).
+  intervals, and performance profiles (:mod:`dvfb.analysis.aggregate_report`);
+* with ``paper=True``, ``paper_comparison.md/.csv``: the report's domain averages beside the
+  paper's published numbers, with a note on the runs' budget against the paper's
+  (:mod:`dvfb.analysis.paper`, docs/reproduce.md); report.md gets the same section.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dvfb.analysis import aggregate_report
+from dvfb.analysis import paper as paper_tables
 from dvfb.analysis.aggregate_report import BootstrapConfig
 from dvfb.analysis.common import (
     SUCCESS,
@@ -58,6 +62,7 @@ class Report:
     files: list[Path] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     aggregates: dict[str, aggregate_report.Aggregates] = field(default_factory=dict)  # kind -> aggregates
+    paper: paper_tables.PaperComparison | None = None  # with paper=True (dvfb report --paper)
 
 
 def _outputs(out_dir: Path, has_zeroshot: bool, has_finetune: bool, success: tuple[bool, bool]) -> list[Path]:
@@ -75,8 +80,11 @@ def _outputs(out_dir: Path, has_zeroshot: bool, has_finetune: bool, success: tup
 def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, *, spread: str = "std",
                 random_files: Sequence[str | os.PathLike] = (), overwrite: bool = False,
                 normaliser: str = "auto", bootstrap: BootstrapConfig | None = None,
-                curve_band: str = "ci") -> Report:
+                curve_band: str = "ci", paper: bool = False) -> Report:
     """Discover runs under ``paths`` and write the tables, aggregates and curves into ``out_dir``.
+
+    ``paper`` adds ``paper_comparison.md/.csv`` and a section of report.md: the domain averages
+    beside the paper's published numbers (:mod:`dvfb.analysis.paper`, docs/reproduce.md).
 
     ``normaliser`` chooses the scores of the aggregates (docs/reports.md): ``auto`` the first of
     min-max, supervised and expert that covers every task; a named one must cover them (else an
@@ -109,6 +117,10 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
         if result is not None and result.scopes:
             report.aggregates[kind] = result
     planned = _outputs(out_dir, bool(zs or rnd), bool(ft), (bool(zs_success or rnd_success), bool(ft_success)))
+    numbers, budget = None, None
+    if paper:  # the package's tables are read (and checked) before anything is written
+        numbers, budget = paper_tables.load_paper_numbers(), paper_tables.run_budget(runs, zs, ft)
+        planned += [out_dir / "paper_comparison.md", out_dir / "paper_comparison.csv"]
     planned += [out_dir / "curves" / f"finetune_{task}.png" for task in curves]
     for kind in report.aggregates:
         planned += [out_dir / f"aggregates_{kind}.md", out_dir / f"aggregates_{kind}.csv", out_dir / f"profiles_{kind}.png"]
@@ -120,13 +132,13 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
     check_writable(out_dir)  # a read-only or full disk: one line, before the first file
     try:
         return _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_success, rnd_success,
-                             runs, curves, bootstrap, curve_band)
+                             runs, curves, bootstrap, curve_band, (numbers, budget) if paper else None)
     except OSError as exc:
         raise AnalysisError(f"cannot write the report in {out_dir}: {exc.strerror or exc}") from exc
 
 
 def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_success, rnd_success, runs, curves,
-                  bootstrap, curve_band) -> Report:
+                  bootstrap, curve_band, paper=None) -> Report:
 
     sections = ["# dvfb report", "", "Runs: " + ", ".join(f"`{p}`" for p in paths) + ".", ""]
     if zs or rnd:
@@ -183,6 +195,13 @@ def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_su
     if success_sections:
         _write(out_dir / "table6_success.md", "\n\n".join(success_sections) + "\n", report)
         sections += ["\n\n".join(success_sections), ""]
+    if paper is not None:
+        numbers, budget = paper
+        report.paper = paper_tables.compare(report.zeroshot, report.finetune, budget, numbers)
+        section = paper_tables.to_markdown(report.paper)
+        _write(out_dir / "paper_comparison.md", section + "\n", report)
+        _write(out_dir / "paper_comparison.csv", paper_tables.to_csv(report.paper), report)
+        sections += [section, ""]
     if report.notes:
         sections += ["## Notes", ""] + [f"- {note}" for note in report.notes] + [""]
     _write(out_dir / "report.md", "\n".join(sections), report)

@@ -17,7 +17,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     bootstrap = BootstrapConfig(args.bootstrap_samples, args.confidence, args.bootstrap_seed)
     report = make_report(args.runs, args.out, spread="se" if args.stderr else "std",
                          random_files=args.random or (), overwrite=args.overwrite, normaliser=args.normaliser,
-                         bootstrap=bootstrap, curve_band=args.curve_band)
+                         bootstrap=bootstrap, curve_band=args.curve_band, paper=args.paper)
     if not args.aggregates_only:
         for table in (report.zeroshot, report.finetune, report.success_zeroshot, report.success_finetune):
             if table is not None:
@@ -27,6 +27,10 @@ def cmd_report(args: argparse.Namespace) -> int:
                         print(f"### {table.title}: {name}-normalised\n\n{to_markdown(table, normalised=name)}\n")
     for result in report.aggregates.values():
         print(aggregate_report.markdown(result, bootstrap, None, heading_level=2))
+    if report.paper is not None:
+        from dvfb.analysis.paper import to_markdown as paper_markdown  # lazy: as above
+
+        print(paper_markdown(report.paper) + "\n")
     for note in report.notes:
         print(f"note: {note}")
     print(f"report written to {report.out_dir} ({len(report.files)} files; see {report.out_dir / 'report.md'})")
@@ -67,6 +71,11 @@ def register(sub, agent: str) -> None:
     p.add_argument("--curve-band", default="ci", choices=("ci", "std", "se"),
                    help="band of the fine-tuning curves: bootstrap interval of the mean (3+ seeds), ± std or "
                         "± standard error (default: %(default)s)")
+    p.add_argument("--paper", action="store_true",
+                   help="also write paper_comparison.md/.csv and a section of report.md: each domain average "
+                        "beside the paper's published number (Tables 1, 2 and 8), the difference, the published "
+                        "numbers without a run ('not run'), and how the runs' budget compares with the paper's "
+                        "(docs/reproduce.md)")
     p.add_argument("--aggregates-only", action="store_true",
                    help="print only the aggregates (every file is still written)")
     p.set_defaults(func=cmd_report)

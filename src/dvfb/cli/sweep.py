@@ -94,6 +94,10 @@ def run_from_args(args: argparse.Namespace) -> int:
     from dvfb.sweep import runner  # lazy: the sweep's machinery loads when the command runs
 
     path, config = config_from_args(args)
+    if getattr(args, "dry_run", False):
+        for line in runner.dry_run(path, config):
+            print(f"[sweep] {line}")
+        return 0
     outcome = runner.run(path, config)
     print(f"[sweep] {len(outcome.done)} unit(s) run, {len(outcome.skipped)} already done, "
           f"{len(outcome.failed)} failed or not run; status: dvfb sweep status {path}")
@@ -140,6 +144,9 @@ def register(sub, agent: str) -> None:
                                          "ones are reported with their log and do not stop the others. Exit "
                                          "status 1 when a unit failed.")
     add_run_arguments(q)
+    q.add_argument("--dry-run", action="store_true",
+                   help="build and check every cell's config (the checks of a real run) and print the cells, jobs "
+                        "and units it would run, and the pre-training commands; creates, runs and submits nothing")
     q.set_defaults(func=cmd_sweep)
     q = sweep_sub.add_parser("status", help="table of the cells of a sweep",
                              description="Each cell's state (done / running / queued / failed / stopped), "

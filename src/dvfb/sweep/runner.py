@@ -16,9 +16,10 @@ from dvfb.config import format_value
 from dvfb.errors import ConfigError, DvfbError
 from dvfb.runs import LOCK_FILE, RunLock, last_metric_record, read_json, write_json_atomic
 from dvfb.sweep import spec
-from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, alive_jobs
+from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, _sbatch_options, alive_jobs, cores
 from dvfb.sweep.spec import Cell, SweepConfig
-from dvfb.sweep.units import SweepDir, group_of, is_done, mark_failed, pretrain_target, read_state, units_of
+from dvfb.sweep.units import (SweepDir, command, group_of, is_done, jobs_of, mark_failed, pretrain_target,
+                              read_state, units_of)
 
 
 def prepare(path: Path, requested: SweepConfig) -> SweepDir:
@@ -28,15 +29,19 @@ def prepare(path: Path, requested: SweepConfig) -> SweepDir:
     """
     sweep = SweepDir(path)
     if sweep.config_path.exists():
-        stored = spec.load_stored(path)
-        differ = spec.same_grid(stored, requested)
-        if differ:
-            raise ConfigError(f"{path} holds another sweep ({', '.join(differ)} differ from {sweep.config_path}); "
-                              "choose another --dir, or repeat the original command to continue it")
+        check_same_grid(sweep, requested)
     else:
         check_new_sweep_dir(path)
     write_json_atomic(sweep.config_path, spec.to_dict(requested))
     return sweep
+
+
+def check_same_grid(sweep: SweepDir, requested: SweepConfig) -> None:
+    """A re-run must ask for the grid its directory holds (the executor settings may differ)."""
+    differ = spec.same_grid(spec.load_stored(sweep.path), requested)
+    if differ:
+        raise ConfigError(f"{sweep.path} holds another sweep ({', '.join(differ)} differ from {sweep.config_path}); "
+                          "choose another --dir, or repeat the original command to continue it")
 
 
 def check_new_sweep_dir(path: Path) -> None:
@@ -68,6 +73,63 @@ def run(path: Path, config: SweepConfig) -> Outcome:
         if config.report:
             write_reports(sweep, config)
         return outcome
+
+
+def dry_run(path: Path, config: SweepConfig) -> list[str]:
+    """What ``dvfb sweep run --dry-run`` prints: the cells, the jobs and the units a run would start,
+    after the checks of a real run (every cell's config, built by :func:`dvfb.sweep.spec.build`;
+    the sweep directory; a stored grid; the slurm executor's extra options). Nothing is created,
+    written or submitted, and SLURM is not asked (docs/sweeps.md, docs/reproduce.md)."""
+    check_new_sweep_dir(path)
+    sweep = SweepDir(path)
+    if sweep.config_path.is_file():
+        check_same_grid(sweep, config)
+    if config.executor == "slurm":
+        try:
+            _sbatch_options(config.slurm.extra_sbatch)
+        except (DvfbError, ValueError) as exc:  # ValueError: shlex's unbalanced quotes
+            raise ConfigError(f"slurm.extra_sbatch: {exc}") from exc
+    cells = spec.cells(config)
+    jobs = jobs_of(config)
+    state = "continues the sweep in" if sweep.config_path.is_file() else "would create"
+    lines = [f"dry run: nothing is created, run or submitted; a run {state} {path}",
+             f"{len(cells)} cell(s): agents {', '.join(config.agents)}; domains {', '.join(config.domains)}; "
+             f"seeds {', '.join(map(str, config.seeds))}; preset {config.preset}; phases {', '.join(config.phases)}"]
+    rows = [("cell", "frames", "units")]
+    for cell in cells:
+        units = []
+        for unit in units_of(config, cell):
+            text = unit.name
+            if unit.phase == "zeroshot":
+                text += f" ({len(spec.zeroshot_tasks(config, cell))} tasks)"
+            units.append(text)
+        rows.append((cell.name, f"{spec.cell_config(config, cell).frames:,}", ", ".join(units)))
+    widths = [max(len(row[i]) for row in rows) for i in range(2)]
+    lines += ["  " + f"{a.ljust(widths[0])}  {b.rjust(widths[1])}  {c}" for a, b, c in rows]
+    units = [unit for first, rest in jobs for unit in (first, *rest)]
+    todo = [unit for unit in units if not is_done(sweep, config, unit)]
+    per_phase = {phase: sum(u.phase == phase for u in todo) for phase in spec.PHASES}
+    lines.append(f"{len(jobs)} pre-training process(es) of {config.seeds_per_job} seed(s) at most; "
+                 f"{len(units)} unit(s), {len(todo)} to run (" + ", ".join(f"{n} {p}" for p, n in per_phase.items())
+                 + f"), {len(units) - len(todo)} already done; executor {config.executor}")
+    if config.executor == "slurm":
+        s = config.slurm
+        where = ", ".join(f"{name} {getattr(s, name)}" for name in ("partition", "account", "qos")
+                          if getattr(s, name) is not None) or "the cluster's default partition"
+        lines.append(f"slurm: {where}; one job array per phase, {s.array_parallelism} job(s) at once")
+        for phase in spec.PHASES:
+            if phase in config.phases:
+                r: spec.Resources = getattr(s, phase)
+                lines.append(f"  {phase} jobs: {r.gpus} GPU(s), {r.cpus} CPU(s), {r.mem_gb:g} GB, {r.time_min} min")
+        threads = config.torch_threads or s.pretrain.cpus
+    elif config.executor == "local":
+        threads = config.torch_threads or max(1, cores() // min(config.workers or cores(), cores()))
+    else:
+        threads = config.torch_threads
+    lines.append("pre-training commands:")
+    lines += [f"  dvfb {' '.join(command(sweep, config, first, threads))}" for first, _ in jobs
+              if not is_done(sweep, config, first)]
+    return lines
 
 
 def close_dead_units(sweep: SweepDir, config: SweepConfig) -> list[str]:
