@@ -569,6 +569,18 @@ class ReplayBuffer:
             state["sampler"] = self.sampler.state_dict()
         return state
 
+    @classmethod
+    def from_state(cls, state: dict, device: str | torch.device = "cpu") -> ReplayBuffer:
+        """A buffer of the shape ``state`` (from :meth:`state_dict`) was saved with, holding its
+        episodes: a saved replay read on its own (zero-shot from a run's replay, an export's samples)."""
+        try:
+            shape = [int(state[key]) for key in ("capacity", "obs_dim", "action_dim", "z_dim", "max_episode_length")]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"replay state has no usable shape ({exc})") from exc
+        buffer = cls(*shape, device=device, columns=state.get("columns"))
+        buffer.load_state_dict(state)
+        return buffer
+
     def load_state_dict(self, state: dict) -> None:
         """Restore what :meth:`state_dict` saved; raises CheckpointError when it does not fit."""
         try:

@@ -93,7 +93,7 @@ class RunDir:
                         f"(no {CONFIG_FILE} or {META_FILE}); remove it yourself or choose another "
                         "run name"
                     )
-                if _is_export_config(path / CONFIG_FILE):
+                if is_export_config(path / CONFIG_FILE):
                     raise RunDirError(f"refusing to overwrite {path}: it is an exported model (dvfb export), not a "
                                       "run directory; choose another run name")
                 return True
@@ -254,7 +254,8 @@ class RunLock:
             shutil.rmtree(self.path, ignore_errors=True)
 
 
-def _is_export_config(path: Path) -> bool:
+def is_export_config(path: Path) -> bool:
+    """Whether the JSON file ``path`` is the config.json of an exported model (dvfb.runs.export)."""
     try:
         data = read_json(path)
     except (RunDirError, OSError):

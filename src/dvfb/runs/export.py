@@ -26,13 +26,13 @@ import numpy as np
 import torch
 
 from dvfb import __version__
-from dvfb.agents import Model, get_spec, make_model
+from dvfb.agents import Model, make_model
 from dvfb.config import to_dict
 from dvfb.data import ReplayBuffer
 from dvfb.data.buffer import PHYSICS_COLUMN
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.files import read_json, write_json_atomic
-from dvfb.runs.directory import EXPORT_FORMAT, check_writable
+from dvfb.runs.directory import EXPORT_FORMAT, check_writable, is_export_config
 from dvfb.runs.layout import PretrainRun
 from dvfb.runs.run_config import PretrainConfig, run_config_from_dict
 
@@ -46,14 +46,8 @@ DEFAULT_INFERENCE_SIZE = 100_000
 
 
 def is_export(path: str | os.PathLike) -> bool:
-    """Whether ``path`` is an exported model directory (its config.json says so)."""
-    config = Path(path) / CONFIG_FILE
-    if not (Path(path) / MODEL_FILE).is_file() or not config.is_file():
-        return False
-    try:
-        return read_json(config).get("format") == EXPORT_FORMAT
-    except (RunDirError, AttributeError):
-        return False
+    """Whether ``path`` is an exported model directory: its weights, and a config.json that says so."""
+    return (Path(path) / MODEL_FILE).is_file() and is_export_config(Path(path) / CONFIG_FILE)
 
 
 @dataclasses.dataclass
@@ -96,12 +90,7 @@ def inference_samples(run: PretrainRun, size: int, seed: int) -> dict[str, np.nd
     if state is None or "replay" not in state:
         raise ConfigError(f"{run.path} has no pre-training replay (no resume checkpoint) to take inference samples "
                           "from; export it without --with-inference-data")
-    replay = state["replay"]
-    # A buffer of the shape the replay was saved with.
-    buffer = ReplayBuffer(int(replay["capacity"]), int(replay["obs_dim"]), int(replay["action_dim"]),
-                          int(replay["z_dim"]), int(replay["max_episode_length"]), columns=replay.get("columns"))
-    buffer.load_state_dict(replay)
-    data = buffer.transitions()
+    data = ReplayBuffer.from_state(state["replay"]).transitions()
     n = data.obs.shape[0]
     chosen = np.sort(np.random.default_rng(seed).choice(n, size=min(size, n), replace=False))
     index = torch.as_tensor(chosen)
@@ -228,7 +217,6 @@ def load_export(path: str | os.PathLike, device: str | torch.device = "cpu") -> 
         raise CheckpointError(f"{path} is an exported model of format version {info.get('format_version')!r}; this "
                               f"dvfb ({__version__}) reads version {EXPORT_VERSION}")
     config = run_config_from_dict(info.get("run_config"), str(path / CONFIG_FILE))
-    get_spec(config.agent)
     obs_dim, action_dim = info["observation_space"]["shape"][0], info["action_space"]["shape"][0]
     model = make_model(config.agent, obs_dim, action_dim, config, device)
     try:

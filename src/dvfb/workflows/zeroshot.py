@@ -110,9 +110,7 @@ def _inference_states(model: Model, run: PretrainRun | None, config: PretrainCon
         buffer, _ = read_dataset(config.dataset, model.device, model.skill_dim)
         source = f"the run's dataset {config.dataset}"
     elif state is not None:
-        buffer = ReplayBuffer(config.replay_capacity, model.obs_dim, model.action_dim, model.skill_dim,
-                              episode_length, device=model.device, columns=state["replay"].get("columns"))
-        buffer.load_state_dict(state["replay"])
+        buffer = ReplayBuffer.from_state(state["replay"], model.device)
         source = "the run's pre-training replay"
     else:
         c = protocol.config
