@@ -26,6 +26,7 @@ def tiny_exploration(**overrides) -> ExplorationConfig:
 TINY_SECTIONS = {
     "fb": dict(z_dim=D, hidden_dim=H, feature_dim=E, backward_hidden_dim=H, batch_size=32),
     "conservative": dict(samples=6),
+    "fbee": dict(ensemble=3, candidates=8),
     "sf": dict(z_dim=D, hidden_dim=H, feature_dim=E, backward_hidden_dim=H, batch_size=32),
     "exploration": dict(rnd_rep_dim=16, contrastive_hidden_dim=32, ce_k=4),
     "ddpg": dict(hidden_dim=H, batch_size=32),

@@ -30,6 +30,7 @@ from dvfb.agents import comsd  # noqa: E402,F401
 from dvfb.agents import cesd  # noqa: E402,F401
 from dvfb.agents import sf  # noqa: E402,F401
 from dvfb.agents import conservative_fb  # noqa: E402,F401
+from dvfb.agents import fbee  # noqa: E402,F401
 from dvfb.agents import supervised  # noqa: E402,F401
 
 from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig  # noqa: E402

@@ -217,6 +217,18 @@ class Model(nn.Module):
         for key, module in self.snapshot_modules().items():
             module.load_state_dict(modules[key])
 
+    # Statistics of the pre-training data that a snapshot carries beside the networks, for the
+    # protocols that cannot see the replay (task inference from interaction alone reads FB's
+    # Cov(B)). Set from the snapshot when the model is loaded (empty for older snapshots).
+    statistics: dict[str, torch.Tensor] = {}
+    has_statistics: ClassVar[bool] = False  # whether data_statistics computes any
+
+    def data_statistics(self, obs: torch.Tensor, next_obs: torch.Tensor, member: int | None = None
+                        ) -> dict[str, torch.Tensor]:
+        """The statistics of pre-training transitions ``(n, O)`` a snapshot keeps (``member``: a
+        group's member, whose networks are its slice of the stacked ones). None by default."""
+        return {}
+
 
 class Agent(nn.Module):
     """Base class of every method's learner (see the module docstring). Subclasses set ``name``,
@@ -264,6 +276,13 @@ class Agent(nn.Module):
 
     def sample_skill(self, n: int = 1, generator: torch.Generator | None = None) -> torch.Tensor | None:
         return self.model.sample_skill(n, generator)
+
+    def explore_skill(self, obs: np.ndarray, generator: torch.Generator | None = None,
+                      member: int | None = None) -> torch.Tensor | None:
+        """The skill pre-training acts with from ``obs`` until the skill rule redraws it (docs/methods.md,
+        "Skills"): a draw of the prior, unless the method chooses it from the state (FBEE).
+        ``member``: a group's member whose rollout it is (its networks are its slice)."""
+        return self.sample_skill(1, generator=generator)[0]
 
     def act(self, obs: np.ndarray, skills: torch.Tensor | None, explore: bool) -> np.ndarray:
         return self.model.act(obs, skills, explore)

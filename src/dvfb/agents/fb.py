@@ -118,6 +118,7 @@ class FBModel(Model):
 
     name = "fb"
     learns_skill_value = True
+    has_statistics = True
 
     # The representation's targets: (online module's name, its target's name), what a learner EMAs.
     TARGETS = (("forward_map", "forward_target"), ("backward_map", "backward_target"))
@@ -172,6 +173,18 @@ class FBModel(Model):
             z = self.sample_skill(1)[0]
             info["fallback"] = "prior"
         return z, info
+
+    @torch.no_grad()
+    def data_statistics(self, obs: torch.Tensor, next_obs: torch.Tensor, member: int | None = None
+                        ) -> dict[str, torch.Tensor]:
+        """``Cov(B) = B^T B / n`` (float64) of the transitions' B features: the metric of the
+        features ``phi = Cov^-1 B`` that online task inference regresses rewards on."""
+        if self.members:  # a group's stacked networks read every member's copy of the rows
+            obs = obs.expand(self.members, *obs.shape)
+            next_obs = next_obs.expand(self.members, *next_obs.shape)
+        features = self.backward_features(obs, next_obs).double()
+        cov = features.mT @ features / features.shape[-2]
+        return {"cov_backward": (cov if member is None else cov[member]).cpu()}
 
     @torch.no_grad()
     def skill_from_goal(self, goal_obs: torch.Tensor) -> torch.Tensor:
@@ -290,7 +303,7 @@ class FBAgent(Agent):
                  perf: PerfConfig | None = None, components: list[FBComponent] = ()):
         super().__init__()
         self.config = config
-        self.adopt(self.model_cls(obs_dim, action_dim, config, device, perf))
+        self.adopt(self.make_model(obs_dim, action_dim, config, device, perf))
         model = self.model
         for online, target in model.TARGETS:
             self.add_module(target, make_target(getattr(model, online)))
@@ -312,6 +325,10 @@ class FBAgent(Agent):
         frozen = [self.forward_map] + [m for part in self.parts for m in part.actor_frozen()]
         self._actor_frozen_params = [p for m in frozen for p in m.parameters()]
         self.net_runner.compile(self.update_networks())
+
+    def make_model(self, obs_dim: int, action_dim: int, config, device, perf) -> FBModel:
+        """The model the learner trains (a variant with more than FB's section overrides this)."""
+        return self.model_cls(obs_dim, action_dim, config, device, perf)
 
     def make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         """The representation's optimiser (FB: one for F and B, B at ``backward_lr_coef`` times lr)."""

@@ -124,7 +124,13 @@ class FinetuneRun:
     def method(self) -> str:
         # The pre-training run's config names the variant (e.g. w/o CE); without it, the agent.
         pretrain = self.parent.config if self.parent is not None else {"agent": self.config.agent}
-        return method_name(pretrain, self.config.finetune)
+        name = method_name(pretrain, self.config.finetune)
+        protocol = getattr(self.config, "protocol", "")
+        if protocol:  # a fine-tuner chosen instead of the method's own: its own row (dvfb+lola)
+            from dvfb.protocols import finetuner_class  # lazy: the analyses load without the protocols
+
+            name += "+" + finetuner_class(protocol).label(self.config.finetune)
+        return name
 
     @property
     def pretrain_seed(self) -> int | None:

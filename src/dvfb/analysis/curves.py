@@ -49,6 +49,20 @@ def load_curves(runs: Sequence[FinetuneRun]) -> dict[str, dict[str, list[tuple[n
     return curves
 
 
+def load_episode_curves(runs: Sequence[FinetuneRun]) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
+    """``{task: {method: [(episode, return), ...one per run]}}``: the return of every training
+    episode of the protocols that record them (test-time search, online task inference), against
+    the number of episodes of interaction (1, 2, ...)."""
+    curves: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
+    for run in runs:
+        curve = run.run.curve(AnalysisError)
+        if curve is None or not curve.episodes:
+            continue
+        returns = np.array([float(e["return"]) for e in curve.episodes])
+        curves[run.config.task][run.method].append((np.arange(1, len(returns) + 1, dtype=float), returns))
+    return curves
+
+
 def aggregate(curves: Sequence[tuple[np.ndarray, np.ndarray]], spread: str = "std",
               bootstrap_seed: int = 0) -> CurveBand:
     """Mean and spread across runs at every frame count any run evaluated at. With
@@ -76,7 +90,8 @@ def aggregate(curves: Sequence[tuple[np.ndarray, np.ndarray]], spread: str = "st
     return CurveBand(frames, mean_arr, np.array(band), np.array(count), np.asarray(low, float), np.asarray(high, float))
 
 
-def _plot_task(ax, task: str, by_method: dict[str, list], spread: str, seed: int = 0) -> None:
+def _plot_task(ax, task: str, by_method: dict[str, list], spread: str, seed: int = 0,
+               xlabel: str = "fine-tuning frames") -> None:
     for method in sorted(by_method, key=method_sort_key):
         band = aggregate(by_method[method], spread, seed)
         seeds = len(by_method[method])
@@ -85,22 +100,26 @@ def _plot_task(ax, task: str, by_method: dict[str, list], spread: str, seed: int
         if ok.any():
             ax.fill_between(band.frames[ok], band.low[ok], band.high[ok], color=line.get_color(), alpha=0.2, linewidth=0)
     ax.set_title(task)
-    ax.set_xlabel("fine-tuning frames")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("episode return")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
 
 
-def plot_curves(curves: dict[str, dict[str, list]], out_dir: Path, spread: str = "ci", seed: int = 0) -> list[Path]:
-    """``finetune_<task>.png`` per task and ``finetune_all.png`` (a grid of every task)."""
+def plot_curves(curves: dict[str, dict[str, list]], out_dir: Path, spread: str = "ci", seed: int = 0,
+                kind: str = "finetune") -> list[Path]:
+    """``finetune_<task>.png`` per task and ``finetune_all.png`` (a grid of every task); with
+    ``kind="episodes"``, the per-episode curves of :func:`load_episode_curves` as ``episodes_*.png``."""
+    xlabel = "fine-tuning frames" if kind == "finetune" else "episodes of interaction"
+    title = "Fine-tuning" if kind == "finetune" else "Returns of the episodes of interaction"
     from matplotlib.figure import Figure
 
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for task in sorted(curves):
         fig = Figure(figsize=(5, 3.6), dpi=100, layout="constrained")
-        _plot_task(fig.add_subplot(), task, curves[task], spread, seed)
-        path = out_dir / f"finetune_{task}.png"
+        _plot_task(fig.add_subplot(), task, curves[task], spread, seed, xlabel)
+        path = out_dir / f"{kind}_{task}.png"
         fig.savefig(path)
         written.append(path)
     if curves:
@@ -109,10 +128,10 @@ def plot_curves(curves: dict[str, dict[str, list]], out_dir: Path, spread: str =
         nrows = math.ceil(len(tasks) / ncols)
         fig = Figure(figsize=(4.5 * ncols, 3.4 * nrows), dpi=100, layout="constrained")
         what = {"se": "± standard error", "std": "± std", "ci": "with 95% bootstrap intervals (3+ seeds)"}[spread]
-        fig.suptitle(f"Fine-tuning: mean episode return over seeds {what}")
+        fig.suptitle(f"{title}: mean episode return over seeds {what}")
         for i, task in enumerate(tasks):
-            _plot_task(fig.add_subplot(nrows, ncols, i + 1), task, curves[task], spread, seed)
-        path = out_dir / "finetune_all.png"
+            _plot_task(fig.add_subplot(nrows, ncols, i + 1), task, curves[task], spread, seed, xlabel)
+        path = out_dir / f"{kind}_all.png"
         fig.savefig(path)
         written.append(path)
     return written

@@ -41,7 +41,7 @@ from dvfb.analysis.tables import AVERAGE, Table
 PAPER_PRETRAIN_FRAMES = 2_000_000
 PAPER_FINETUNE_FRAMES = 100_000
 # Presets with the paper's network sizes and batch (docs/methods.md, "Hyper-parameters").
-FULL_SIZE_PRESETS = ("paper", "code")
+FULL_SIZE_PRESETS = ("paper", "code", "fbee")
 KINDS = ("zeroshot", "finetune")
 FIELDS = ("table", "kind", "domain", "method", "paper_name", "value", "source")
 CSV_FIELDS = ("table", "kind", "domain", "method", "paper_name", "report_value", "report_seeds", "paper_value",

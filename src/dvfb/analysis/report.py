@@ -41,7 +41,7 @@ from dvfb.analysis.common import (
     random_scores,
     zeroshot_scores,
 )
-from dvfb.analysis.curves import load_curves, plot_curves
+from dvfb.analysis.curves import load_curves, load_episode_curves, plot_curves
 from dvfb.analysis.normalise import CHOICES, NORMALISERS
 from dvfb.analysis.tables import Table, build_table, success_markdown_section, table_markdown_section, to_csv
 from dvfb.runs import check_writable
@@ -111,6 +111,7 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
                             f"{', '.join(map(str, paths))}; run `dvfb zeroshot` or `dvfb finetune` first")
     report = Report(out_dir)
     curves = load_curves(runs.finetune) if ft else {}
+    episodes = load_episode_curves(runs.finetune) if ft else {}
     # Everything is computed before anything is written: a missing reference fails with no file.
     for kind, scores, title in (("zeroshot", [*zs, *rnd], TABLE1), ("finetune", ft, TABLE2)):
         result = aggregate_report.compute(scores, kind, title, normaliser, bootstrap) if scores else None
@@ -122,6 +123,7 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
         numbers, budget = paper_tables.load_paper_numbers(), paper_tables.run_budget(runs, zs, ft)
         planned += [out_dir / "paper_comparison.md", out_dir / "paper_comparison.csv"]
     planned += [out_dir / "curves" / f"finetune_{task}.png" for task in curves]
+    planned += [out_dir / "curves" / f"episodes_{task}.png" for task in episodes]
     for kind in report.aggregates:
         planned += [out_dir / f"aggregates_{kind}.md", out_dir / f"aggregates_{kind}.csv", out_dir / f"profiles_{kind}.png"]
     planned += [out_dir / f"{stem}_{name}.csv" for stem in ("table1_zeroshot", "table2_finetune")
@@ -132,13 +134,13 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
     check_writable(out_dir)  # a read-only or full disk: one line, before the first file
     try:
         return _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_success, rnd_success,
-                             runs, curves, bootstrap, curve_band, (numbers, budget) if paper else None)
+                             runs, curves, bootstrap, curve_band, (numbers, budget) if paper else None, episodes)
     except OSError as exc:
         raise AnalysisError(f"cannot write the report in {out_dir}: {exc.strerror or exc}") from exc
 
 
 def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_success, rnd_success, runs, curves,
-                  bootstrap, curve_band, paper=None) -> Report:
+                  bootstrap, curve_band, paper=None, episodes=None) -> Report:
 
     sections = ["# dvfb report", "", "Runs: " + ", ".join(f"`{p}`" for p in paths) + ".", ""]
     if zs or rnd:
@@ -175,6 +177,15 @@ def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_su
         sections += ["## Fine-tuning curves", ""]
         sections += [f"![{p.stem}](curves/{p.name})" for p in pngs]
         sections.append("")
+        if episodes:  # test-time search and online task inference: their claim is per episode
+            pngs = plot_curves(episodes, out_dir / "curves", curve_band, bootstrap.seed, kind="episodes")
+            report.files += pngs
+            sections += ["## Returns of the episodes of interaction", "",
+                         "The return of every training episode of the protocols that record them (test-time "
+                         "search over z, online task inference), against the episodes of interaction, with "
+                         "the fine-tuning curves' intervals.", ""]
+            sections += [f"![{p.stem}](curves/{p.name})" for p in pngs]
+            sections.append("")
     for kind, result in report.aggregates.items():
         figure = aggregate_report.plot_profiles(result, out_dir / f"profiles_{kind}.png", bootstrap.confidence)
         report.files.append(figure)

@@ -46,27 +46,30 @@ def pretrain_config(args: argparse.Namespace):
     return merge(base, overrides_from_args(args, run_config_class(args.agent)))
 
 
-def protocol_classes(kind: str) -> list[type]:
-    """The config classes of every registered zero-shot protocol (``inference``) or fine-tuner."""
+def protocol_classes(kind: str, online: bool = False) -> list[type]:
+    """The config classes of every registered zero-shot protocol (``inference``) or fine-tuner
+    (``online``: only the fine-tuners that infer the task online, ``dvfb zeroshot --protocol``)."""
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS
 
     registry = ZERO_SHOT_PROTOCOLS if kind == "inference" else FINETUNERS
     classes: list[type] = []
     for protocol in registry.values():
+        if online and getattr(protocol, "infers_skill", True):
+            continue
         if protocol.config_cls not in classes:
             classes.append(protocol.config_cls)
     return classes
 
 
-def add_protocol_arguments(p: argparse.ArgumentParser, kind: str) -> None:
+def add_protocol_arguments(p: argparse.ArgumentParser, kind: str, online: bool = False) -> None:
     """``--inference.*`` or ``--finetune.*`` flags: the union of the families' fields, each once.
 
     Which of them apply depends on the run's method; a flag its family lacks is an error naming
     the family's config class when the run is loaded.
     """
     seen: set[str] = set()
-    for cls in protocol_classes(kind):
+    for cls in protocol_classes(kind, online):
         skip = tuple(f.name for f in dataclasses.fields(cls) if f.name in seen)
         if len(skip) < len(dataclasses.fields(cls)):
             group = p.add_argument_group(f"{kind} options ({cls.__name__})")
@@ -74,9 +77,9 @@ def add_protocol_arguments(p: argparse.ArgumentParser, kind: str) -> None:
         seen.update(f.name for f in dataclasses.fields(cls))
 
 
-def protocol_overrides(args: argparse.Namespace, kind: str) -> dict:
+def protocol_overrides(args: argparse.Namespace, kind: str, online: bool = False) -> dict:
     out: dict = {}
-    for cls in protocol_classes(kind):
+    for cls in protocol_classes(kind, online):
         out.update(overrides_from_args(args, cls, prefix=f"{kind}."))
     return out
 

@@ -15,7 +15,7 @@ def cmd_finetune(args: argparse.Namespace) -> int:
 
     options = dict(snapshot=args.snapshot, seed=args.seed, name=args.name,
                    inference=protocol_overrides(args, "inference"), finetune=protocol_overrides(args, "finetune"),
-                   resume=args.resume, overwrite=args.overwrite, progress=args.progress,
+                   resume=args.resume, overwrite=args.overwrite, progress=args.progress, protocol=args.protocol,
                    log=overrides_from_args(args, LogConfig, prefix="log."))
     many = len(args.run) > 1
     runs = finetune(args.run if many else args.run[0], args.task, **options)
@@ -43,6 +43,10 @@ def register(sub, agent: str) -> None:
     p.add_argument("--task", required=True, help="task name of the run's domain")
     add_snapshot_and_seed(p)
     p.add_argument("--name", default=None, help="name of the fine-tuning run under RUN/finetune/ (default: the task)")
+    p.add_argument("--protocol", default=None,
+                   help="another fine-tuner the method may use (FB family and SF: latent_search, test-time search "
+                        "over z; online_inference, task inference from interaction alone); its --finetune.* options "
+                        "then apply (default: the method's own; a resumed run keeps its own)")
     p.add_argument("--resume", action="store_true", help="continue from the latest fine-tuning checkpoint")
     p.add_argument("--overwrite", action="store_true", help="replace an existing fine-tuning run")
     progress_flag(p)

@@ -9,6 +9,12 @@ from dvfb.cli.common import (DeprecatedAlias, Formatter, add_protocol_arguments,
 
 
 def cmd_zeroshot(args: argparse.Namespace) -> int:
+    if args.protocol is not None:
+        return _online(args)
+    if args.resume:
+        from dvfb.errors import ConfigError  # lazy: the command's machinery loads when it runs
+
+        raise ConfigError("--resume continues a zero-shot protocol that runs in the task: pass --protocol with it")
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.workflows.resources import open_run
     from dvfb.workflows.zeroshot import zeroshot
@@ -45,6 +51,45 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _online(args: argparse.Namespace) -> int:
+    """A zero-shot protocol that infers the task from interaction alone (``online_inference``): it
+    runs in the task on the fine-tuning loop (its budget, resume and evaluations), under
+    ``RUN/finetune/<task>.<protocol>/``."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
+    from dvfb.errors import ConfigError
+    from dvfb.protocols import FINETUNERS
+    from dvfb.runs.layout import FinetuneRun
+    from dvfb.workflows.finetune import finetune
+
+    cls = FINETUNERS.get(args.protocol)
+    if cls is None or cls.infers_skill:
+        choices = ", ".join(name for name, c in FINETUNERS.items() if not c.infers_skill)
+        raise ConfigError(f"--protocol {args.protocol} is not a zero-shot protocol that runs in the task; choose "
+                          f"one of {choices}")
+    for name, flag in (("skill_source", "--skill-source"), ("goal", "--goal"), ("reward_fn", "--reward-fn"),
+                       ("dataset", "--dataset"), ("skip_existing", "--skip-existing")):
+        if getattr(args, name) not in (None, False, "rewards"):
+            raise ConfigError(f"{flag} does not apply to --protocol {args.protocol} (it infers the task from the "
+                              "rewards it observes)")
+    if len(args.task) != 1 or args.task[0] == "all":
+        raise ConfigError(f"--protocol {args.protocol} runs in one task at a time: pass one --task")
+    if protocol_overrides(args, "inference"):
+        raise ConfigError(f"--inference.* options do not apply to --protocol {args.protocol}: its options are "
+                          "--finetune.*")
+    many = len(args.run) > 1
+    runs = finetune(args.run if many else args.run[0], args.task[0], snapshot=args.snapshot, seed=args.seed,
+                    finetune=protocol_overrides(args, "finetune", online=True), resume=args.resume,
+                    overwrite=args.overwrite, progress=args.progress, protocol=args.protocol)
+    for run in runs if many else [runs]:
+        curve = FinetuneRun(run.path, None).curve()
+        returns = " ".join(f"{e['return']:.1f}" for e in curve.episodes or [])
+        print(f"{args.protocol} finished: {run.path}")
+        print(f"episode returns: {returns}")
+        print(f"final z: {curve.curve[-1]['mean_return']:.1f} over {len(curve.curve[-1].get('returns', []))} "
+              f"mean-action episodes")
+    return 0
+
+
 def register(sub, agent: str) -> None:
     p = sub.add_parser("zeroshot", help="the skill of a task by the method's zero-shot protocol, evaluated", formatter_class=Formatter,
                        description="Zero-shot by the method's registered protocol (docs/methods.md, \"Protocols\"): "
@@ -72,6 +117,13 @@ def register(sub, agent: str) -> None:
     p.add_argument("--skip-existing", action="store_true",
                    help="leave out the runs that already have a task's result (a group evaluates the others) "
                         "instead of stopping with an error")
+    p.add_argument("--protocol", default=None,
+                   help="online_inference: infer the task from interaction alone (no labelled data; a UCB or "
+                        "Thompson-sampling bandit over z), recording every episode's return, then evaluate the "
+                        "final z; runs under RUN/finetune/<task>.<protocol>/ and takes --finetune.* options "
+                        "(default: the method's own protocol)")
+    p.add_argument("--resume", action="store_true", help="with --protocol: continue from its latest checkpoint")
     progress_flag(p)
     add_protocol_arguments(p, "inference")
+    add_protocol_arguments(p, "finetune", online=True)
     p.set_defaults(func=cmd_zeroshot)

@@ -459,14 +459,20 @@ class ReplayBuffer:
             return self._gather_nstep(slot.to(self.device), step.to(self.device), gamma, need_future, nstep)
         return self._gather(slot.to(self.device), step.to(self.device), gamma, need_future)
 
-    def transitions(self, gamma: float = 0.99) -> Batch:
-        """Every stored transition once, oldest episode first and in time order within an episode.
+    def transitions(self, gamma: float = 0.99, limit: int | None = None) -> Batch:
+        """Every stored transition once, oldest episode first and in time order within an episode
+        (``limit``: only the newest whole episodes that fit in ``limit`` transitions, at least the
+        newest one; no random draw).
 
-        Used for zero-shot task inference on reward-labelled data (docs/methods.md §8.1).
-        ``future_obs`` is None.
+        Used for zero-shot task inference on reward-labelled data (docs/methods.md §8.1) and for
+        the statistics a snapshot carries. ``future_obs`` is None.
         """
         slots = self._ring_slots()
-        counts = self._lengths[slots]
+        counts = self._lengths[slots].copy()
+        if limit is not None and int(counts.sum()) > limit:
+            kept = np.cumsum(counts[::-1])[::-1]
+            first = int(np.nonzero(kept <= limit)[0][0]) if (kept <= limit).any() else len(slots) - 1
+            slots, counts = slots[first:], counts[first:]
         total = int(counts.sum())
         starts = np.cumsum(counts) - counts
         slot = np.repeat(slots, counts)

@@ -190,6 +190,20 @@ def _tensor_slots(module: nn.Module):
                 yield owner, kind, name
 
 
+def _stack_tensors(modules: list[nn.Module], mismatch: str) -> None:
+    """Every parameter and buffer of ``modules[0]`` becomes the stack of the modules' tensors (a
+    parameter keeps its identity: its ``.data`` is replaced)."""
+    slots = [list(_tensor_slots(module)) for module in modules]
+    if any(len(s) != len(slots[0]) for s in slots):
+        raise ValueError(mismatch)
+    for i, (owner, kind, name) in enumerate(slots[0]):
+        stacked = torch.stack([getattr(s[i][0], s[i][1])[s[i][2]].detach() for s in slots])
+        if kind == "_parameters":
+            owner._parameters[name].data = stacked
+        else:
+            owner._buffers[name] = stacked
+
+
 def stack_agents(agents: list) -> object:
     """One agent whose tensors stack those of ``agents`` (same method and config, built and seeded
     as separate runs): the first agent, modified in place and returned.
@@ -201,17 +215,8 @@ def stack_agents(agents: list) -> object:
     if not agents:
         raise ValueError("a group needs at least one member")
     lead, m = agents[0], len(agents)
-    slots = [list(_tensor_slots(a)) for a in agents]
-    if any(len(s) != len(slots[0]) for s in slots):
-        raise ValueError("the members of a group must be the same method with the same config")
     optimizer_states = [_optimizer_tensors(a) for a in agents]
-    for i, (owner, kind, name) in enumerate(slots[0]):
-        tensors = [getattr(s[i][0], s[i][1])[s[i][2]] for s in slots]
-        stacked = torch.stack([t.detach() for t in tensors])
-        if kind == "_parameters":
-            owner._parameters[name].data = stacked
-        else:
-            owner._buffers[name] = stacked
+    _stack_tensors(agents, "the members of a group must be the same method with the same config")
     _stack_optimizer_states(lead, optimizer_states)
     for module in _with_model(lead):
         cls = MEMBER_CLASSES.get(type(module))
@@ -305,3 +310,51 @@ def drop_members(agent, keep: list[int]) -> None:
     for module in _with_model(agent):
         module.members = len(keep)
     agent.use_generator(MemberGenerators(agent.generator[i] for i in keep))
+
+
+# Ensembles ---------------------------------------------------------------------------------------
+# An ensemble is E networks of one architecture inside one agent (FBEE's forward maps), stacked as
+# a group stacks its members: one batched product per layer for all of them. Its layers read the
+# stacked axes from their own weights, so that the ensemble of a group's member (weights
+# ``(M, E, ...)``) runs as M*E networks on inputs ``(M*E, N, in)`` with no code of its own.
+
+class EnsembleLinear(nn.Linear):
+    """E stacked ``nn.Linear`` (weights ``(..., E, out, in)``): inputs ``(C, N, in)`` with C the
+    number of stacked networks (E, or M*E in a group), one batched product."""
+
+    members: int = 0  # set by a group's stacking; the stacked axes are read from the weight
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        weight = self.weight.reshape(-1, *self.weight.shape[-2:])
+        bias = None if self.bias is None else self.bias.reshape(-1, self.bias.shape[-1])
+        return _RowProducts.apply(x, weight, bias)
+
+
+class EnsembleLayerNorm(nn.LayerNorm):
+    """E stacked ``nn.LayerNorm`` over the last axis (affine ``(..., E, width)``): inputs ``(C, N, width)``."""
+
+    members: int = 0
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = F_nn.layer_norm(x, self.normalized_shape, None, None, self.eps)
+        if self.weight is None:
+            return out
+        width = self.weight.shape[-1]
+        return out * self.weight.reshape(-1, 1, width) + self.bias.reshape(-1, 1, width)
+
+
+ENSEMBLE_CLASSES = {nn.Linear: EnsembleLinear, nn.LayerNorm: EnsembleLayerNorm}
+
+
+def stack_ensemble(networks: list[nn.Module]) -> nn.Module:
+    """One network that runs ``networks`` (one architecture, each initialised on its own) as a
+    stack: the first, modified in place. It takes inputs ``(C, N, ...)``, network c's rows at c."""
+    lead = networks[0]
+    _stack_tensors(networks, "the networks of an ensemble must have one architecture")
+    for module in lead.modules():
+        cls = ENSEMBLE_CLASSES.get(type(module))
+        if cls is not None:
+            module.__class__ = cls
+        elif hasattr(module, "members") and not isinstance(module, (EnsembleLinear, EnsembleLayerNorm)):
+            module.members = len(networks)  # blocks with their own stacked path (TwinHead)
+    return lead

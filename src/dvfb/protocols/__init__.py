@@ -34,11 +34,29 @@ def finetuner_class(name: str) -> type[Finetuner]:
         raise ConfigError(f"unknown fine-tuner {name!r}; registered: {', '.join(FINETUNERS)}") from None
 
 
-def protocols_of(agent: str) -> tuple[type[ZeroShotProtocol], type[Finetuner]]:
-    """The zero-shot protocol and the fine-tuner of a registered method."""
+def protocols_of(agent: str, finetuner: str = "") -> tuple[type[ZeroShotProtocol], type[Finetuner]]:
+    """The zero-shot protocol and the fine-tuner of a registered method (``finetuner``: one the
+    method may choose instead of its own, :func:`finetuner_choices`; empty: its own)."""
     spec = get_spec(agent)
-    return zero_shot_protocol(spec.zero_shot), finetuner_class(spec.finetuner)
+    return zero_shot_protocol(spec.zero_shot), finetuner_class(chosen_finetuner(agent, finetuner))
+
+
+def finetuner_choices(agent: str) -> tuple[str, ...]:
+    """The fine-tuners a method may use: its own first, then those that declare they replace it."""
+    own = get_spec(agent).finetuner
+    return (own,) + tuple(name for name, cls in FINETUNERS.items() if own in cls.replaces)
+
+
+def chosen_finetuner(agent: str, protocol: str = "") -> str:
+    """The fine-tuner's name for ``--protocol`` (empty: the method's own); one line if the method
+    cannot use it."""
+    if not protocol:
+        return get_spec(agent).finetuner
+    choices = finetuner_choices(agent)
+    if protocol not in choices:
+        raise ConfigError(f"--protocol {protocol} is not a protocol of {agent!r}; choose one of {', '.join(choices)}")
+    return protocol
 
 
 __all__ = ["FINETUNERS", "SKILL_SOURCES", "ZERO_SHOT_PROTOCOLS", "Finetuner", "FinetuneSchedule", "ZeroShotProtocol",
-           "finetuner_class", "protocols_of", "zero_shot_protocol"]
+           "chosen_finetuner", "finetuner_choices", "finetuner_class", "protocols_of", "zero_shot_protocol"]

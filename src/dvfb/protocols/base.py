@@ -105,6 +105,15 @@ class Finetuner(nn.Module):
     name: ClassVar[str] = ""
     config_cls: ClassVar[type] = FinetuneSchedule
     uniform_seed_actions: ClassVar[bool] = True
+    # The registered fine-tuners this one may be chosen instead of (``--protocol``): a method whose
+    # fine-tuner is listed here may use this one too (test-time search stands in for dual-value).
+    replaces: ClassVar[tuple[str, ...]] = ()
+    # Whether the method's zero-shot protocol finds the starting skill first (False: the fine-tuner
+    # starts from no labelled data and is built with skill None, as task inference online is).
+    infers_skill: ClassVar[bool] = True
+    # Whether the return of every training episode goes into the curve file (protocols whose
+    # claim is about tens of episodes of interaction: their per-episode curve in the report).
+    records_episodes: ClassVar[bool] = False
     members: int = 0  # a group's member count (docs/members.md); 0: one run
 
     def __init__(self, model, skill: torch.Tensor | None, config: Any):
@@ -156,9 +165,17 @@ class Finetuner(nn.Module):
     def check(cls, model, config: Any) -> None:
         """Refuse options that do not fit the model, before any work (one line, ConfigError)."""
 
+    @classmethod
+    def label(cls, config: Any) -> str:
+        """What a report appends (after ``+``) to the method's name for a run of this fine-tuner
+        chosen by ``--protocol``: its name, or its variant's (``lola``, ``rela``)."""
+        return cls.name
+
     def rollout_skill(self, step: int, episode_start: bool, current: torch.Tensor | None,
-                      generator: torch.Generator | None = None) -> torch.Tensor | None:
-        """The skill to act with at ``step``; ``current`` is the one of the previous step."""
+                      generator: torch.Generator | None = None, obs: np.ndarray | None = None
+                      ) -> torch.Tensor | None:
+        """The skill to act with at ``step``; ``current`` is the one of the previous step, ``obs``
+        the observation the step's action is chosen at (a group's: its member's)."""
         return self.skill
 
     def bind_replay(self, replay) -> None:

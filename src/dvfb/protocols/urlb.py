@@ -105,7 +105,7 @@ class DDPGFinetuner(Finetuner):
     def bind_replay(self, replay) -> None:
         self.replay = replay
 
-    def rollout_skill(self, step, episode_start, current, generator=None):
+    def rollout_skill(self, step, episode_start, current, generator=None, obs=None):
         spec, c = self.model.skill, self.config
         if c.skill == "resample" and spec.has_skill:
             if current is None or spec.due(step, episode_start):

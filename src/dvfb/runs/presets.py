@@ -13,10 +13,10 @@ Each method adds its own part in its :class:`~dvfb.agents.registry.AgentSpec` (`
 
 from __future__ import annotations
 
-from dvfb.agents import get_spec
+from dvfb.agents import agent_names, get_spec
 from dvfb.config import merge, replace
 from dvfb.errors import ConfigError
-from dvfb.runs.run_config import DEFAULT_AGENT, PRESETS, PretrainConfig, run_config_class
+from dvfb.runs.run_config import DEFAULT_AGENT, GENERIC_PRESETS, PRESETS, PretrainConfig, run_config_class
 
 
 def preset_config(preset: str, agent: str = DEFAULT_AGENT, **top_level) -> PretrainConfig:
@@ -24,6 +24,10 @@ def preset_config(preset: str, agent: str = DEFAULT_AGENT, **top_level) -> Pretr
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     spec = get_spec(agent)
+    if preset not in GENERIC_PRESETS and preset not in spec.presets:
+        owners = [name for name in agent_names() if preset in get_spec(name).presets]
+        raise ConfigError(f"preset {preset!r} holds the constants of {', '.join(owners)}; {agent!r} has the presets "
+                          f"{', '.join(GENERIC_PRESETS)}")
     config = run_config_class(agent)(agent=agent, preset=preset)
     if spec.defaults:
         config = merge(config, spec.defaults)

@@ -149,6 +149,7 @@ class Curve(Record):
 
     kind: ClassVar[str] = "finetune_curve"
     required: ClassVar[dict] = {"curve": list}
+    optional: ClassVar[tuple[str, ...]] = ("protocol", "episodes")
 
     task: str | None = None
     domain: str | None = None
@@ -158,6 +159,10 @@ class Curve(Record):
     z: list | None = None
     inference_info: Any = None
     curve: list[dict]
+    # A protocol chosen instead of the method's fine-tuner (None: the method's own), and, for the
+    # protocols that record them, every training episode: {"frames", "return"}.
+    protocol: str | None = None
+    episodes: list[dict] | None = None
 
     @classmethod
     def from_json(cls, data: Any, where: str | Path, error: type[Exception] = RunDirError):

@@ -33,7 +33,9 @@ from dvfb.protocols import protocols_of
 from dvfb.runs.migrations import migrate_run_config
 from dvfb.runs.wandb_sink import LogConfig
 
-PRESETS = ("small", "paper", "code")
+# small, paper, code: every method's; a method may add its own (fbee: its authors' constants).
+PRESETS = ("small", "paper", "code", "fbee")
+GENERIC_PRESETS = ("small", "paper", "code")
 DEFAULT_AGENT = "dvfb"
 
 
@@ -118,9 +120,10 @@ def run_config_class(agent: str) -> type:
     return cls
 
 
-def protocol_fields(agent: str) -> list[tuple]:
-    """The ``inference`` and ``finetune`` sections of a method's configs: its protocols' configs."""
-    zero_shot, finetuner = protocols_of(agent)
+def protocol_fields(agent: str, finetuner: str = "") -> list[tuple]:
+    """The ``inference`` and ``finetune`` sections of a method's configs: its protocols' configs
+    (``finetuner``: a fine-tuner the method may choose instead of its own)."""
+    zero_shot, finetuner = protocols_of(agent, finetuner)
     return [("inference", zero_shot.config_cls,
              field(default_factory=zero_shot.config_cls, metadata={"help": f"Zero-shot ({zero_shot.name})."})),
             ("finetune", finetuner.config_cls,
@@ -168,16 +171,20 @@ class FinetuneRunConfig:
     snapshot: int = param(0, "Pre-training snapshot (frames) the agent starts from.")
     seed: int = seed_param(0, "Seed of the task environment and the fine-tuning randomness.")
     device: str = param("auto", "Torch device.")
+    protocol: str = param("", "The fine-tuner, when not the method's own (latent_search, online_inference); "
+                          "empty: the method's (docs/methods.md, \"Protocols\").")
     log: LogConfig = field(default_factory=LogConfig,
                            metadata={"help": "Where the metrics go besides metrics/ and tb/: Weights & Biases."})
 
 
 @functools.cache
-def finetune_run_config_class(agent: str) -> type:
-    """The fine-tuning run-config dataclass of a registered method."""
+def finetune_run_config_class(agent: str, protocol: str = "") -> type:
+    """The fine-tuning run-config dataclass of a registered method with its fine-tuner (``protocol``:
+    one it may choose instead of its own)."""
     spec = get_spec(agent)
-    cls = dataclasses.make_dataclass(f"{spec.agent_cls.__name__}FinetuneRunConfig", protocol_fields(agent),
-                                     bases=(FinetuneRunConfig,))
+    suffix = "".join(part.capitalize() for part in protocol.split("_"))
+    cls = dataclasses.make_dataclass(f"{spec.agent_cls.__name__}{suffix}FinetuneRunConfig",
+                                     protocol_fields(agent, protocol), bases=(FinetuneRunConfig,))
     cls.__module__ = __name__
     return cls
 
@@ -188,7 +195,9 @@ def load_finetune_run_config(path: str | Path) -> FinetuneRunConfig:
     if not isinstance(data, dict) or not isinstance(data.get("agent"), str):
         raise ConfigError(f"{path}: not a dvfb fine-tuning config")
     try:
-        return from_dict(finetune_run_config_class(data["agent"]), data)
+        protocol = data.get("protocol", "")
+        return from_dict(finetune_run_config_class(data["agent"], protocol if isinstance(protocol, str) else ""),
+                         data)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from exc
 

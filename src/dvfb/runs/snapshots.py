@@ -20,15 +20,20 @@ from dvfb.runs.run_config import PretrainConfig, agent_sections, run_config_from
 SNAPSHOT_KIND = "pretrained_agent"
 
 
-def snapshot_state(agent: Agent | Model, config: PretrainConfig, frames: int, modules: dict | None = None) -> dict:
+def snapshot_state(agent: Agent | Model, config: PretrainConfig, frames: int, modules: dict | None = None,
+                   statistics: dict | None = None) -> dict:
     """A self-describing snapshot: the method's name, its run config, the dims, the format version
     and the state of its pre-trained modules (``modules``: their state dicts, a group member's or a
-    model's; given with a :class:`Model`, which has no ``pretrained_modules``)."""
+    model's; given with a :class:`Model`, which has no ``pretrained_modules``), and the statistics
+    of its pre-training data (:meth:`~dvfb.agents.base.Model.data_statistics`) where it has any."""
     if modules is None:
         modules = {k: m.state_dict() for k, m in agent.pretrained_modules().items()}
-    return {"kind": SNAPSHOT_KIND, "format": SNAPSHOT_FORMAT, "agent": config.agent, "domain": config.domain,
-            "config": to_dict(config), "frames": frames, "obs_dim": agent.obs_dim, "action_dim": agent.action_dim,
-            "modules": modules}
+    state = {"kind": SNAPSHOT_KIND, "format": SNAPSHOT_FORMAT, "agent": config.agent, "domain": config.domain,
+             "config": to_dict(config), "frames": frames, "obs_dim": agent.obs_dim, "action_dim": agent.action_dim,
+             "modules": modules}
+    if statistics:
+        state["statistics"] = statistics
+    return state
 
 
 def check_snapshot(state: dict, config: PretrainConfig, where: str) -> None:
@@ -93,4 +98,6 @@ def model_from_snapshot(state: dict, config: PretrainConfig, device: str | torch
         model.load_snapshot(state["modules"])
     except (KeyError, RuntimeError) as exc:
         raise CheckpointError(f"{where} does not fit the configured networks: {exc}") from exc
+    statistics = state.get("statistics") or {}
+    model.statistics = {k: v for k, v in statistics.items() if isinstance(v, torch.Tensor)}
     return model

@@ -9,7 +9,12 @@ from the fine-tuner; uniform actions during ``seed_frames`` where it asks for th
 fine-tuner update every ``update_every`` steps after ``seed_frames``, and an evaluation every
 ``eval_every`` steps.
 
-Each fine-tuning run has its own directory ``RUN/finetune/<name>/`` (default name: the task) with
+``protocol`` chooses another fine-tuner the method may use (docs/methods.md, "Protocols"): test-time
+search over z (``latent_search``) or task inference from interaction alone (``online_inference``,
+which starts from no labelled data: no zero-shot protocol runs first).
+
+Each fine-tuning run has its own directory ``RUN/finetune/<name>/`` (default name: the task, and
+``<task>.<protocol>`` for a chosen protocol) with
 its config, metrics, resume checkpoints and ``curve.json`` (frames, mean and std return). One
 implementation serves a run and a group of runs (docs/members.md): a run is a group of one.
 """
@@ -17,6 +22,7 @@ implementation serves a run and a group of runs (docs/members.md): a run is a gr
 from __future__ import annotations
 
 import contextlib
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +36,7 @@ from dvfb.agents import get_spec
 from dvfb.config import merge, to_dict
 from dvfb.data import ReplayBuffer
 from dvfb.errors import CheckpointError, ConfigError
-from dvfb.protocols import finetuner_class, zero_shot_protocol
+from dvfb.protocols import chosen_finetuner, finetuner_class, zero_shot_protocol
 from dvfb.runs import RunDir, RunLock, check_writable
 from dvfb.runs.layout import FinetuneRun, PretrainRun
 from dvfb.runs.records import Curve, FinetuneSummary, curve_point
@@ -52,7 +58,7 @@ RESUME_KIND = "finetune_resume"
 def finetune(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot: int | None = None,
              inference: dict | None = None, finetune: dict | None = None, seed: int | None = None,
              name: str | None = None, resume: bool = False, overwrite: bool = False, progress: bool | None = None,
-             device: str | None = None, log: dict | None = None):
+             device: str | None = None, log: dict | None = None, protocol: str | None = None):
     """Fine-tune the pre-trained run ``run_dir`` on ``task`` (returns its fine-tuning run,
     :class:`~dvfb.runs.layout.FinetuneRun`), or, given a list of runs, a group (docs/members.md) in
     lockstep in this process (returns the list of their fine-tuning runs).
@@ -79,7 +85,8 @@ def finetune(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
         raise ConfigError("a group fine-tuning needs at least one run")
     if len({Path(p).resolve() for p in run_paths}) != len(run_paths):
         raise ConfigError("a run is listed twice: the members of a group are distinct runs")
-    members = [_prepared(p, task, snapshot, inference, finetune, seed, name, resume, device, log) for p in run_paths]
+    members = [_prepared(p, task, snapshot, inference, finetune, seed, name, resume, device, log, protocol)
+               for p in run_paths]
     if many:
         _check_group(members)
     locks = [RunLock(m.path) for m in members]
@@ -108,23 +115,30 @@ class _Member:
     task: str
 
 
-def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume, device, log=None) -> _Member:
+def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume, device, log=None,
+              protocol=None) -> _Member:
     """Everything :func:`finetune` checks before it takes the run's lock."""
     run = open_run(run_path)
     config = run.config
     check_task_in_domain(task, config.domain)
+    if protocol is None and resume:  # a resumed run keeps the protocol it was started with
+        protocol = _saved_protocol(run.finetune_path(name or task))
+    protocol = chosen_finetuner(config.agent, protocol or "")
+    own = protocol == get_spec(config.agent).finetuner
     model, snapshot = load_model(run, snapshot, device)
-    run_config = finetune_run_config_class(config.agent)(
+    finetuner_cls = finetuner_class(protocol)
+    # The run config's finetune section is the method's own fine-tuner's; another starts from its defaults.
+    base = config.finetune if own else finetuner_cls.config_cls()
+    run_config = finetune_run_config_class(config.agent, "" if own else protocol)(
         pretrain_run=str(run.path), agent=config.agent, domain=config.domain, task=task, snapshot=snapshot,
-        seed=config.seed if seed is None else seed, device=str(model.device),
+        seed=config.seed if seed is None else seed, device=str(model.device), protocol="" if own else protocol,
         inference=merge(config.inference, inference or {}, "inference."),
-        finetune=merge(config.finetune, finetune or {}, "finetune."), log=merge(config.log, log or {}, "log."))
+        finetune=merge(base, finetune or {}, "finetune."), log=merge(config.log, log or {}, "log."))
     require_wandb(run_config.log)
-    finetuner_cls = finetuner_class(get_spec(config.agent).finetuner)
     finetuner_cls.check(model, run_config.finetune)
     check_replay(run_config.finetune.replay_capacity, "--finetune.replay-capacity", finetuner_cls.needs_of(model),
                  envs.TASKS[task].episode_length, config.domain)
-    path = run.finetune_path(name or task)
+    path = run.finetune_path(name or (task if own else f"{task}.{protocol}"))
     if resume:
         RunDir.open(path)  # names what is missing before anything else happens
     else:
@@ -132,11 +146,22 @@ def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume,
     return _Member(run, config, model, snapshot, run_config, path, task)
 
 
+def _saved_protocol(path: Path) -> str:
+    """The protocol a fine-tuning run directory was started with (empty: the method's own, or no run)."""
+    try:
+        data = json.loads((path / "config.json").read_text())
+    except (OSError, ValueError):
+        return ""  # the resume itself names what is missing
+    protocol = data.get("protocol", "") if isinstance(data, dict) else ""
+    return protocol if isinstance(protocol, str) else ""
+
+
 def _check_group(members: list[_Member]) -> None:
     """What a group fine-tunes in lockstep: one method and configuration, one snapshot, one protocol."""
     check_one_method([(m.run, m.config) for m in members])
     first = members[0]
-    finetuner_class(get_spec(first.config.agent).finetuner).check_group(first.run_config.finetune)
+    finetuner_class(chosen_finetuner(first.config.agent, first.run_config.protocol)).check_group(
+        first.run_config.finetune)
     if len({m.snapshot for m in members}) != 1:
         raise ConfigError("the members' snapshots are of different frames; pass --snapshot")
     for m in members[1:]:
@@ -181,7 +206,8 @@ def _run(members: list[_Member], task: str, resume: bool, overwrite: bool, progr
     bar = Progress(cfg.frames, group.step, what, progress)
     checkpoints = group.checkpoints(cfg.checkpoint_every, cfg.frames, sessions[0].run.path)
     observers = [ReplayWriter(group.lanes, [s.replay for s in sessions]), ProgressCount(bar),
-                 TrainingSteps(group, cfg.seed_frames, cfg.update_every, checkpoints, after_step)]
+                 TrainingSteps(group, cfg.seed_frames, cfg.update_every, checkpoints, after_step,
+                               lambda session, t: session.after_episode(t))]
     try:
         with checkpoints:
             rollout(group.lanes, group.policy, observers, start=group.step, stop=cfg.frames)
@@ -218,7 +244,7 @@ class FinetuneSession(RunSession):
         self.member, self.model = member, member.model
         self.run_config = self.config = member.run_config
         self.cfg, self.seed, self.task = member.run_config.finetune, member.run_config.seed, member.task
-        self.finetuner_cls = finetuner_class(get_spec(member.config.agent).finetuner)
+        self.finetuner_cls = finetuner_class(chosen_finetuner(member.config.agent, member.run_config.protocol))
         self.resume = resume
         self.open(FinetuneRun, member.path, resume, overwrite)
 
@@ -255,6 +281,7 @@ class FinetuneSession(RunSession):
                 self.replay.load_state_dict(state["replay"])
                 self.eval_env.unwrapped.set_rng_state(state["eval_env_rng"])
                 self.curve, self.inference_info = state["curve"], state["inference_info"]
+                self.episodes = state.get("episodes", [])
                 self.restore(state, self.lane.state, z)
             except (KeyError, TypeError, ValueError, RuntimeError) as exc:
                 raise CheckpointError(f"cannot resume {self.run.path}: the checkpoint does not fit this run ({exc})") \
@@ -262,14 +289,17 @@ class FinetuneSession(RunSession):
             self.run.save_config(self.run_config)  # only now may the config change (a larger --finetune.frames)
             notify(f"[finetune] resuming {self.run.path} from step {self.step} (of {cfg.frames})")
         else:
-            keep = self.finetuner_cls.keeps_inference_data(cfg)
-            protocol = zero_shot_protocol(get_spec(member.config.agent).zero_shot)(self.run_config.inference)
-            z, self.inference_info = protocol.task_skill(model, env, rng, max_len, keep_data=keep)
-            if keep:  # the inference episodes, as collected, with z = z_r (D12 option)
-                _copy_episodes(self.inference_info.pop("buffer"), self.replay, z)
-            # The inference data are discarded (§8.2 step 6) unless kept above.
+            if self.finetuner_cls.infers_skill:
+                keep = self.finetuner_cls.keeps_inference_data(cfg)
+                protocol = zero_shot_protocol(get_spec(member.config.agent).zero_shot)(self.run_config.inference)
+                z, self.inference_info = protocol.task_skill(model, env, rng, max_len, keep_data=keep)
+                if keep:  # the inference episodes, as collected, with z = z_r (D12 option)
+                    _copy_episodes(self.inference_info.pop("buffer"), self.replay, z)
+                # The inference data are discarded (§8.2 step 6) unless kept above.
+            else:  # no labelled data: the fine-tuner finds the skill from the interaction itself
+                z, self.inference_info = None, {"protocol": self.finetuner_cls.name, "labelled_steps": 0}
             self.finetuner = self.finetuner_cls(model, z, cfg)
-            self.curve = []
+            self.curve, self.episodes = [], []
         self.finetuner.compile()
         self.z = z
         self.needs = self.finetuner.replay_needs()
@@ -283,7 +313,7 @@ class FinetuneSession(RunSession):
         self._skill_row = None
 
     def skill_rule(self, t: int, episode_start: bool, current):
-        skill = self.learner.rollout_skill(t, episode_start, current, self.generator)
+        skill = self.learner.rollout_skill(t, episode_start, current, self.generator, obs=self.lane.state.obs)
         return self._row(skill)
 
     def evaluation_skill(self):
@@ -300,13 +330,19 @@ class FinetuneSession(RunSession):
 
     def extra_record(self) -> dict:
         return {"z": None if self.z is None else self.z.cpu(), "curve": self.curve,
-                "inference_info": self.inference_info, "finetuner": self.learner_state(),
+                "inference_info": self.inference_info, "finetuner": self.learner_state(), "episodes": self.episodes,
                 "replay": self.replay.state_dict(), "eval_env_rng": self.eval_env.unwrapped.get_rng_state()}
 
     def after_step(self, t: int) -> None:
         self.step = t  # what a checkpoint written at this step records
         if t % 1000 == 0 or t == self.cfg.frames:
             self.log_window(t)
+
+    def after_episode(self, t: int) -> None:
+        """A training episode ended at step ``t``: its return joins the per-episode curve of the
+        protocols that record one (:attr:`~dvfb.protocols.base.Finetuner.records_episodes`)."""
+        if self.finetuner_cls.records_episodes:
+            self.episodes.append({"frames": t, "return": float(self.lane.state.episode_return)})
 
     def evaluation_due(self, t: int) -> bool:
         return t % self.cfg.eval_every == 0 or t == self.cfg.frames
@@ -324,7 +360,9 @@ class FinetuneSession(RunSession):
         c = self.run_config
         self.run.write_curve(Curve(task=c.task, domain=c.domain, agent=c.agent, seed=c.seed, snapshot=c.snapshot,
                                    z=None if self.z is None else self.z.cpu().tolist(),
-                                   inference_info=self.inference_info, curve=self.curve))
+                                   inference_info=self.inference_info, curve=self.curve,
+                                   protocol=self.run_config.protocol or None,
+                                   episodes=self.episodes if self.finetuner_cls.records_episodes else None))
 
     def finish(self) -> None:
         curve = self.curve

@@ -240,6 +240,11 @@ def _read_dataset(config, dataset_info, agent, device, progress):
     return dataset
 
 
+# Transitions a snapshot's data statistics are computed from (Cov(B) of FB, docs/methods.md,
+# "Online task inference": at least 50k states).
+STATISTICS_TRANSITIONS = 100_000
+
+
 class PretrainSession(RunSession):
     """One run directory's share of a pre-training (:class:`RunSession`): its learner (unstacked; a
     group stacks its members' afterwards), replay (or the dataset, offline), environment, episode,
@@ -315,7 +320,9 @@ class PretrainSession(RunSession):
         # The method's declared rule (docs/methods.md, "Skills"); its prior draws the new skill,
         # from this run's own stream (a group's learner draws for each member from the member's).
         learner = self.learner
-        return learner.sample_skill(1, generator=self.generator)[0] if learner.skill.due(t, episode_start) else current
+        if not learner.skill.due(t, episode_start):
+            return current
+        return learner.explore_skill(self.lane.state.obs, self.generator, self.index)
 
     def extra_record(self) -> dict:
         config = self.config
@@ -330,7 +337,12 @@ class PretrainSession(RunSession):
         modules = {k: m.state_dict() for k, m in self.learner.pretrained_modules().items()}
         if self.index is not None:
             modules = member_slice(modules, self.index)
-        return snapshot_state(self.learner, self.config, t, modules)
+        model, statistics = self.learner.model, {}
+        if model.has_statistics and len(self.replay):
+            # The newest pre-training transitions (no random draw: the run's streams are untouched).
+            data = self.replay.transitions(limit=STATISTICS_TRANSITIONS)
+            statistics = model.data_statistics(data.obs, data.next_obs, self.index)
+        return snapshot_state(self.learner, self.config, t, modules, statistics)
 
     def after_step(self, t: int) -> None:
         config = self.config
