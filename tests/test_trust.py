@@ -85,6 +85,11 @@ BAD_ZEROSHOT = [
     (["--inference.reward-quantile", "2"], "--inference.reward-quantile 2.0 is out of range: it must be >= 0 and <= 1"),
     (["--inference.random-action-steps", "300"], "must be at most --inference.steps 200"),
     (["--skill-source", "goal", "--goal", "1,2,3"], "--goal has 3 values but point_mass_maze observations have 4"),
+    (["--protocol", "latent_search"], "--protocol latent_search is not a zero-shot protocol that runs in the task; "
+                                      "choose one of online_inference"),
+    (["--resume"], "--resume continues a zero-shot protocol that runs in the task: pass --protocol with it"),
+    (["--protocol", "online_inference"], "--inference.* options do not apply to --protocol online_inference"),
+    (["--protocol", "online_inference", "--goal", "1,2,3,4"], "--goal does not apply to --protocol online_inference"),
 ]
 
 
@@ -95,6 +100,26 @@ def test_bad_zeroshot_option_writes_nothing(finished_run, extra, message, capsys
     assert main(argv) == 2
     assert message in capsys.readouterr().err
     assert not (finished_run / "zeroshot").exists()
+
+
+BAD_PROTOCOL = [
+    (["finetune", "--task", "point_mass_maze_reach_top_left", "--protocol", "urlb"],
+     "--protocol urlb is not a protocol of 'fb'; choose one of dual_value, latent_search, online_inference"),
+    (["finetune", "--task", "point_mass_maze_reach_top_left", "--protocol", "latent_search", "--finetune.eta", "1"],
+     "eta"),
+    (["finetune", "--task", "point_mass_maze_reach_top_left", "--protocol", "online_inference",
+      "--finetune.beta", "-1"], "--finetune.beta -1.0 is out of range"),
+    (["zeroshot", "--task", "point_mass_maze_reach_top_left", "point_mass_maze_reach_top_right",
+      "--protocol", "online_inference"], "--protocol online_inference runs in one task at a time"),
+]
+
+
+@pytest.mark.parametrize("argv,message", BAD_PROTOCOL, ids=[" ".join(a[3:]) for a, _ in BAD_PROTOCOL])
+def test_bad_protocol_choices_are_one_line_and_create_nothing(finished_run, argv, message, capsys):
+    assert main([argv[0], str(finished_run), *argv[1:]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1, err
+    assert not (finished_run / "finetune").exists() and not (finished_run / "zeroshot").exists()
 
 
 def test_verbose_flag_after_the_subcommand(finished_run, capsys):

@@ -481,6 +481,23 @@ class ReplayBuffer:
         return self._gather(torch.from_numpy(slot).to(self.device),
                             torch.from_numpy(step).to(self.device), gamma, need_future=False)
 
+    def newest(self) -> tuple[tuple[int, int], torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """The newest stored transition ``(key, obs, reward, next_obs)`` (tensors on the buffer's
+        device, reward a scalar), or None while there is none; after a reset, the previous
+        episode's last step. ``key`` = (the episode's ordinal since the buffer began, the step in
+        it) names the transition for good, across evictions and resumes, so that a reader that
+        takes each transition once (online task inference) can tell a new one from the last."""
+        slots = self._ring_slots()
+        lengths = self._lengths[slots]
+        filled = np.flatnonzero(lengths)
+        if filled.size == 0:
+            return None
+        k = int(filled[-1])
+        slot, step = int(slots[k]), int(lengths[k]) - 1
+        key = (int(self._episodes_begun) - int(self.num_episodes) + k, step)
+        self._flush()  # an accelerator's staged rows onto the device
+        return key, self._s_obs[slot, step], self._s_reward[slot, step, 0], self._s_obs[slot, step + 1]
+
     def episodes(self):
         """Every stored episode, oldest first (the one in progress too), as host arrays
         ``(obs (T+1, O), action (T, U), reward (T,), discount (T,))``: the environment's discounts,

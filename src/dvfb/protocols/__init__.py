@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from dvfb.agents import get_spec
 from dvfb.errors import ConfigError
-from dvfb.protocols import dual_value, urlb, zero_shot  # noqa: F401  (registration)
+from dvfb.protocols import dual_value, latent_search, urlb, zero_shot  # noqa: F401  (registration)
+from dvfb.protocols import online_inference  # noqa: F401  (registration)
 from dvfb.protocols.base import (
     FINETUNERS,
     SKILL_SOURCES,

@@ -358,13 +358,17 @@ class FinetuneSession(RunSession):
 
     def _write_curve(self) -> None:
         c = self.run_config
+        # A protocol that finds the skill itself (online inference): the one it evaluates now.
+        z = self.z if self.finetuner_cls.infers_skill else self.finetuner.skill
         self.run.write_curve(Curve(task=c.task, domain=c.domain, agent=c.agent, seed=c.seed, snapshot=c.snapshot,
-                                   z=None if self.z is None else self.z.cpu().tolist(),
+                                   z=None if z is None else z.cpu().tolist(),
                                    inference_info=self.inference_info, curve=self.curve,
                                    protocol=self.run_config.protocol or None,
                                    episodes=self.episodes if self.finetuner_cls.records_episodes else None))
 
     def finish(self) -> None:
+        if self.finetuner_cls.records_episodes:
+            self._write_curve()  # the episodes that ended after the last evaluation
         curve = self.curve
         self.run.write_summary(FinetuneSummary(
             task=self.task, frames=self.step, wall_clock_s=time.time() - self.started,
