@@ -449,3 +449,20 @@ def test_workflow_records_episodes_evaluates_and_resumes_exactly(pretrained: Pat
     assert int(states[0]["regression"]["count"]) == 1000
     for key in ("precision", "moment"):
         assert torch.equal(states[0]["regression"][key], states[1]["regression"][key])
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+def test_zeroshot_with_the_protocol_runs_it_in_the_task_and_prints_each_episode(pretrained: Path, capsys):
+    from dvfb.cli import main
+
+    argv = ["zeroshot", str(pretrained), "--task", TASK, "--protocol", "online_inference", "--finetune.frames",
+            "1000", "--finetune.eval-every", "1000", "--finetune.eval-episodes", "1", "--finetune.candidates", "8",
+            "--no-progress"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    run = pretrained / "finetune" / f"{TASK}.online_inference"
+    curve = json.loads((run / "curve.json").read_text())
+    assert f"episode returns: {curve['episodes'][0]['return']:.1f}" in out
+    assert len(curve["z"]) == 8 and [p["frames"] for p in curve["curve"]] == [0, 1000]
+    assert not (pretrained / "zeroshot").exists()  # not a labelled zero-shot result

@@ -65,6 +65,7 @@ BAD_PRETRAIN = [
     (["--replay-capacity", "500"], "--replay-capacity 500 must be at least the episode length"),
     (["--device", "cuda"], "device 'cuda' was requested but torch sees no CUDA device"),
     (["--resume", "--overwrite"], "--resume and --overwrite contradict each other"),
+    (["--preset", "fbee"], "preset 'fbee' holds the constants of fbee; 'fb' has the presets small, paper, code"),
 ]
 
 
