@@ -74,6 +74,8 @@ def test_an_exported_model_copied_elsewhere_acts_and_infers_as_the_run(run, tmp_
                                rtol=1e-5, atol=1e-6)
     data = np.load(copy / "inference_data.npz")
     assert data["obs"].shape == data["next_obs"].shape == (2000, 4) and data["physics"].shape[0] == 2000
+    # The snapshot's data statistics travel with the weights (online task inference reads Cov(B)).
+    assert torch.equal(original.model.statistics["cov_backward"], exported.model.statistics["cov_backward"])
 
 
 def test_the_model_card_carries_the_metadata_and_the_results(run, tmp_path):

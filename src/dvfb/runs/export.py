@@ -45,6 +45,9 @@ MODEL_FILE, CONFIG_FILE, CARD_FILE, INFERENCE_FILE = ("model.safetensors", "conf
 DEFAULT_INFERENCE_SIZE = 100_000
 
 
+STATISTICS = "statistics"  # the weights file's prefix of the model's data statistics
+
+
 def is_export(path: str | os.PathLike) -> bool:
     """Whether ``path`` is an exported model directory: its weights, and a config.json that says so."""
     return (Path(path) / MODEL_FILE).is_file() and is_export_config(Path(path) / CONFIG_FILE)
@@ -80,6 +83,9 @@ def _weights(model: Model) -> dict[str, torch.Tensor]:
                 raise ConfigError(f"{module_name}.{name} is not a tensor; the model cannot be exported")
             # Own, contiguous CPU storage: safetensors refuses tensors that share memory.
             tensors[f"{module_name}.{name}"] = value.detach().to("cpu").contiguous().clone()
+    # The statistics of the pre-training data a snapshot carries (FB's Cov(B), online task inference).
+    for name, value in model.statistics.items():
+        tensors[f"{STATISTICS}.{name}"] = value.detach().to("cpu").contiguous().clone()
     return tensors
 
 
@@ -224,8 +230,12 @@ def load_export(path: str | os.PathLike, device: str | torch.device = "cpu") -> 
     except (OSError, SafetensorError) as exc:
         raise CheckpointError(f"{path / MODEL_FILE} cannot be read: {exc}") from exc
     modules: dict[str, dict[str, Any]] = {name: {} for name in model.snapshot_modules()}
+    statistics = {}
     for key, value in tensors.items():
         module, _, name = key.partition(".")
+        if module == STATISTICS:
+            statistics[name] = value
+            continue
         if module not in modules:
             raise CheckpointError(f"{path / MODEL_FILE} holds {key}, which no module of {config.agent!r} has")
         modules[module][name] = value
@@ -234,6 +244,7 @@ def load_export(path: str | os.PathLike, device: str | torch.device = "cpu") -> 
     except (KeyError, RuntimeError) as exc:
         raise CheckpointError(f"{path / MODEL_FILE} does not fit {config.agent!r}'s networks: {exc}") from exc
     model.eval()
+    model.statistics = statistics
     data = None
     if info.get("inference_data"):
         try:
@@ -257,7 +268,8 @@ def unpack_export(path: str | os.PathLike, run_dir: str | os.PathLike, overwrite
     run = PretrainRun.create(run_dir, export.config, overwrite=overwrite, command=command)
     modules = {name: module.state_dict() for name, module in export.model.snapshot_modules().items()}
     frames = int(export.info["frames"])
-    save_snapshot(run, snapshot_state(export.model, export.config, frames, modules), snapshot_name(frames))
+    save_snapshot(run, snapshot_state(export.model, export.config, frames, modules, export.model.statistics),
+                  snapshot_name(frames))
     return run
 
 
