@@ -427,9 +427,9 @@ def test_rela_fine_tunes_end_to_end(pretrained):
 def test_the_report_draws_the_episodes_of_interaction_beside_the_fine_tuning_curves(pretrained, tmp_path):
     from dvfb.analysis.report import make_report
 
-    _finetune(pretrained, "report_lola", 1000, horizon=200, samples=3)
+    run = _finetune(pretrained, "report_lola", 1000, horizon=200, samples=3)
     out = tmp_path / "report"
-    make_report([str(pretrained)], str(out))
+    make_report([str(run.path)], str(out))  # this run alone: the module's other runs are fb+lola too
     text = (out / "report.md").read_text()
     assert "## Returns of the episodes of interaction" in text
     task = json.loads((pretrained / "finetune" / "report_lola" / "config.json").read_text())["task"]
