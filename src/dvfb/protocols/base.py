@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from dvfb.agents.registry import get_spec
 from dvfb.config import param, require_updates
 from dvfb.errors import ConfigError
 
@@ -198,6 +199,21 @@ class Finetuner(nn.Module):
 
     def load_training_state(self, state: dict) -> None:
         raise NotImplementedError
+
+
+# How a method's task reward is linear in features, read from its registered zero-shot protocol (for
+# the protocols that search or infer z from rewards): "measure" -- FB and its variants, whose reward
+# of z is B . Cov(B)^-1 z (features Cov^-1 B; the least-squares vector E[r B]); "regression" -- the
+# successor features, whose reward of z is phi . z (features phi; a regression of r on phi).
+REWARD_FEATURES = {"reward_inference": "measure", "feature_regression": "regression"}
+
+
+def reward_features(model) -> str | None:
+    """``"measure"``, ``"regression"`` or None (a method whose skills are not linear in reward features)."""
+    try:
+        return REWARD_FEATURES.get(get_spec(model.name).zero_shot)
+    except ConfigError:
+        return None
 
 
 ZERO_SHOT_PROTOCOLS: dict[str, type[ZeroShotProtocol]] = {}

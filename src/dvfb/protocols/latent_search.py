@@ -31,7 +31,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from dvfb.agents import get_spec
 from dvfb.agents.base import Model, ReplayNeeds
 from dvfb.config import param
 from dvfb.data import Batch
@@ -48,16 +47,16 @@ from dvfb.nets import (
     twin_td_loss,
 )
 from dvfb.nets.members import minimise, randn
-from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner
+from dvfb.protocols.base import REWARD_FEATURES, Finetuner, FinetuneSchedule, register_finetuner, reward_features
 
 METHODS = ("lola", "rela")
 TERMINAL_VALUES = ("w_r", "mu", "z", "none")
 ROLLOUT_ACTIONS = ("auto", "mean", "sample")
 
 # The reward vector w_r is the unprojected, unfiltered counterpart of the skill the method's own
-# zero-shot protocol infers: FB's E[r B(s')] (= argmin_w E[(r - B Cov^-1 w)^2], the measure M = F B^T rho),
-# or the successor features' regression argmin_w E[(r - phi(s') w)^2].
-REWARD_VECTORS = {"reward_inference": "measure", "feature_regression": "regression"}
+# zero-shot protocol infers (protocols.base.reward_features): FB's E[r B(s')] (= argmin_w
+# E[(r - B Cov^-1 w)^2], the measure M = F B^T rho), or the successor features' regression
+# argmin_w E[(r - phi(s') w)^2].
 
 
 @dataclass
@@ -137,13 +136,6 @@ def reward_model(features: torch.Tensor, reward: torch.Tensor, kind: str, ridge:
     return (moment if kind == "measure" else coef), coef
 
 
-def _reward_vector_kind(model: Model) -> str | None:
-    try:
-        return REWARD_VECTORS.get(get_spec(model.name).zero_shot)
-    except ConfigError:
-        return None
-
-
 # ---------------------------------------------------------------------------------------------
 
 
@@ -205,9 +197,9 @@ class LatentSearchFinetuner(Finetuner):
         if not model.learns_skill_value:
             raise ConfigError(f"latent search needs a model with a skill value F . z (the FB family); "
                               f"{model.name!r} has none")
-        if _reward_vector_kind(model) is None:
+        if reward_features(model) is None:
             raise ConfigError(f"latent search reads a reward vector the way the FB family's zero-shot protocols "
-                              f"do ({', '.join(REWARD_VECTORS)}); {model.name!r} uses another")
+                              f"do ({', '.join(REWARD_FEATURES)}); {model.name!r} uses another")
 
     @classmethod
     def check_group(cls, config: LatentSearchConfig) -> None:
@@ -255,7 +247,7 @@ class LatentSearchFinetuner(Finetuner):
             raise ConfigError("latent search needs the labelled inference steps in its replay; it holds none")
         data = replay.transitions(gamma=1.0)
         features = self.model.backward_features(data.obs, data.next_obs)
-        w_r, coef = reward_model(features, data.reward[:, 0], _reward_vector_kind(self.model), self.config.cov_ridge)
+        w_r, coef = reward_model(features, data.reward[:, 0], reward_features(self.model), self.config.cov_ridge)
         if not (torch.isfinite(w_r).all() and torch.isfinite(coef).all()):
             raise ConfigError("the reward model of the inference steps is not finite; add --finetune.cov-ridge 1e-6")
         self.w_r.copy_(w_r.to(self.w_r))

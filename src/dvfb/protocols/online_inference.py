@@ -31,16 +31,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from dvfb.agents import get_spec
 from dvfb.agents.base import Model, ReplayNeeds
 from dvfb.config import param
 from dvfb.errors import ConfigError
-from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner
+from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner, reward_features
 
-# The features a method's task reward is linear in, read from its registered zero-shot protocol:
-# FB's reward of z is B . Cov^-1 z, so phi = Cov(B)^-1 B ("whitened", Cov stored in the snapshot);
-# the successor features' is phi . z, so phi itself ("raw").
-FEATURE_KINDS = {"reward_inference": "whitened", "feature_regression": "raw"}
+# The features a method's task reward is linear in (protocols.base.reward_features): FB's reward of
+# z is B . Cov^-1 z, so phi = Cov(B)^-1 B ("measure", Cov stored in the snapshot); the successor
+# features' is phi . z, so phi itself ("regression").
 RULES = ("ucb", "ts", "random")
 SAMPLINGS = ("ellipsoid", "ball")
 TIE_BREAK = 1e-8  # scale of the uniform noise that breaks ties between equal UCB scores
@@ -262,15 +260,6 @@ def _covariance(model: Model) -> torch.Tensor | None:
     return statistics.get("cov_backward")
 
 
-def feature_kind(model: Model) -> str | None:
-    """``"whitened"`` (phi = Cov^-1 B: FB and its variants), ``"raw"`` (phi: the successor features)
-    or None (a model whose skills are not linear in reward features)."""
-    try:
-        return FEATURE_KINDS.get(get_spec(model.name).zero_shot)
-    except ConfigError:
-        return None
-
-
 @register_finetuner
 class OnlineInference(Finetuner):
     """Task inference from interaction alone on the fine-tuning loop (see the module docstring).
@@ -293,7 +282,7 @@ class OnlineInference(Finetuner):
         self.model, self.config = model, config
         device = model.device
         self.cov_inverse = None  # raw features: none
-        if feature_kind(model) == "whitened":
+        if reward_features(model) == "measure":
             cov = _covariance(model).to(device=device, dtype=torch.float64)
             self.cov_inverse = torch.cholesky_inverse(torch.linalg.cholesky(cov))
         noise = config.ucb_noise if config.rule == "ucb" else config.ts_noise
@@ -312,11 +301,11 @@ class OnlineInference(Finetuner):
     # The protocol's interface -----------------------------------------------------------------
     @classmethod
     def check(cls, model: Model, config: OnlineInferenceConfig) -> None:
-        kind = feature_kind(model)
+        kind = reward_features(model)
         if kind is None or not model.learns_skill_value or model.skill_dim == 0:
             raise ConfigError(f"online task inference needs a model of the FB family or the successor features "
                               f"(rewards linear in features, a forward map, a skill z); {model.name!r} is neither")
-        if kind == "raw":
+        if kind == "regression":
             return
         cov = _covariance(model)
         d = model.skill_dim
