@@ -434,7 +434,40 @@ def release_requeued(job: str) -> None:
     started in that window is killed as "non-startable" (seen on a loaded machine)."""
     wait_until(lambda: subprocess.run(["sinfo", "-h", "-N", "-o", "%T"], capture_output=True, text=True
                                       ).stdout.split() == ["idle"], "the node to be idle after the requeue")
+    # slurmd refuses a credential issued in the same second as the old attempt's revocation (it
+    # compares whole seconds), and the job is then killed as "non-startable" with exit status 1;
+    # the revocation came before the node went idle, so two seconds from here are always later.
+    time.sleep(2.0)
     subprocess.run(["scontrol", "update", f"jobid={job}", "StartTime=now"], capture_output=True)
+
+
+def phase_pid(run: Path, command: str) -> int | None:
+    """The process id of the phase ``dvfb COMMAND RUN ...`` (a grandchild of the SLURM job), if any."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            argv = (entry / "cmdline").read_bytes().decode(errors="replace").split("\0")
+        except OSError:  # it ended meanwhile
+            continue
+        if argv[1:4] == ["-m", "dvfb", command] and len(argv) > 4 and argv[4] == str(run):
+            return int(entry.name)
+    return None
+
+
+def frozen_until_sigterm(pid: int) -> bool:
+    """False while the process stays stopped with no SIGTERM pending (/proc's masks, bit 15 - 1).
+    True once SIGTERM waits in it, or once something else (SLURM's signal delivery) continued it
+    or it ended: either way the runner's stop has reached it."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text().splitlines()
+    except OSError:  # it ended
+        return True
+    fields = dict(line.split(":", 1) for line in status if ":" in line)
+    if not fields.get("State", "").strip().startswith("T"):
+        return True
+    masks = [int(fields[k].strip(), 16) for k in ("SigPnd", "ShdPnd") if k in fields]
+    return any(mask & (1 << (signal.SIGTERM - 1)) for mask in masks)
 
 
 def test_a_time_limit_requeues_the_phase_and_it_ends_bit_identical(tmp_path, slurm_cluster):  # noqa: F811
@@ -444,14 +477,17 @@ def test_a_time_limit_requeues_the_phase_and_it_ends_bit_identical(tmp_path, slu
     (it checkpoints), the job requeues itself and the next attempt resumes. The uninterrupted
     reference runs beside it, and the phase ends bit-identical to it.
 
+    The phase must still be running when USR2 comes, up to 30 s after the limit is lowered (the
+    limit check's period). Rather than giving it that much work on the fastest machine, the test
+    freezes it (SIGSTOP) at its first checkpoint and thaws it (SIGCONT) once the runner's SIGTERM
+    waits in it: the signals and the stop are the real ones, only the phase's pace is the test's.
+
     One phase is enough: every phase runs on the same session core with one set of resume rules
     (docs/architecture.md), and the runner's USR2 handling does not know which phase it stops.
     Fine-tuning is the phase limited here because it also resumes from its pre-trained run;
     test_requeued_job_resumes_and_ends_equal_to_an_uninterrupted_run requeues a pre-training."""
-    # The fine-tuning runs about a minute on an idle machine, so that it cannot end before the USR2
-    # that the next limit check (at most 30 s after the limit is lowered) sends.
     finetune = ["--phases", "pretrain", "finetune", "--finetune-tasks", "walker_walk",
-                "--finetune.frames", "56000", "--finetune.eval-every", "28000", "--finetune.eval-episodes", "1",
+                "--finetune.frames", "8000", "--finetune.eval-every", "4000", "--finetune.eval-episodes", "1",
                 "--finetune.seed-frames", "300", "--finetune.update-every", "4", "--finetune.checkpoint-every", "1000"]
     one_cell = dict(agents=("fb",), seeds=("0",), frames=3000, extra=finetune)
     reference, sweep_dir = tmp_path / "reference", tmp_path / "limited"
@@ -460,10 +496,17 @@ def test_a_time_limit_requeues_the_phase_and_it_ends_bit_identical(tmp_path, slu
                  for d, executor in ((reference, "debug"), (sweep_dir, "slurm"))]
     run = sweep_dir / "runs" / "fb_walker_s0"
     unit, run_dir = "finetune-walker_walk", run / "finetune" / "walker_walk"
+    frozen = None
     try:
         wait_until(lambda: (run_dir / "checkpoints" / "latest").exists(), f"the first {unit} checkpoint")
+        frozen = phase_pid(run, "finetune")
+        assert frozen is not None, f"no {unit} process"
+        os.kill(frozen, signal.SIGSTOP)
         job = sweep_jobs(sweep_dir)[f"fb_walker_s0/{unit}"]
         lower_time_limit(job)
+        wait_until(lambda: frozen_until_sigterm(frozen), f"the runner to stop {unit} after SLURM's USR2", limit_s=150)
+        os.kill(frozen, signal.SIGCONT)
+        frozen = None
         wait_until(lambda: requeued_by_slurm(sweep_dir, "fb_walker_s0", unit),
                    f"the {unit} job to stop at its time limit", limit_s=300)
         wait_until(lambda: job_state(job) == "PENDING", f"the {unit} job to be requeued")
@@ -471,15 +514,21 @@ def test_a_time_limit_requeues_the_phase_and_it_ends_bit_identical(tmp_path, slu
         release_requeued(job)
         outputs = [p.communicate(timeout=900)[0] for p in processes]
     finally:
+        if frozen is not None:
+            try:
+                os.kill(frozen, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
         for p in processes:
             if p.poll() is None:
                 p.kill()
                 p.wait()
-    assert [p.returncode for p in processes] == [0, 0], outputs
+    assert [p.returncode for p in processes] == [0, 0], "\n".join(outputs)
     for name, attempts in (("pretrain", 1), (unit, 2)):
         state = unit_state(sweep_dir, "fb_walker_s0", name)
         assert state["state"] == "done" and state["attempts"] == attempts, (name, state)
     log = (sweep_dir / "logs" / "fb_walker_s0" / f"{unit}.log").read_text()
+    assert "SIGTERM received" in log.split("=== attempt 2")[0]
     assert log.split("=== attempt 2")[1].splitlines()[0].endswith("--resume")
     # The job got SLURM's USR2 and requeued itself (submitit reads the limit the job started with,
     # so it calls the lowered limit a preemption; the path is the same).
@@ -488,13 +537,13 @@ def test_a_time_limit_requeues_the_phase_and_it_ends_bit_identical(tmp_path, slu
     expected_run = reference / "runs" / "fb_walker_s0"
     curve = json.loads((run_dir / "curve.json").read_text())["curve"]
     expected = json.loads((expected_run / "finetune" / "walker_walk" / "curve.json").read_text())["curve"]
-    assert [p["frames"] for p in curve] == [0, 28000, 56000]
+    assert [p["frames"] for p in curve] == [0, 4000, 8000]
     assert [p["returns"] for p in curve] == [p["returns"] for p in expected]
     from dvfb.runs import RunDir, load_checkpoint
 
     final = load_checkpoint(RunDir(run_dir))
     expected_final = load_checkpoint(RunDir(expected_run / "finetune" / "walker_walk"))
-    assert final["step"] == expected_final["step"] == 56000
+    assert final["step"] == expected_final["step"] == 8000
     tensors = {k: v for k, v in _flatten(final["finetuner"]) if isinstance(v, torch.Tensor)}
     expected_tensors = dict(_flatten(expected_final["finetuner"]))
     assert tensors and all(torch.equal(v, expected_tensors[k]) for k, v in tensors.items())
