@@ -190,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--device", default="cuda", choices=("cuda", "cpu"), help="device to check")
     parser.add_argument("--quick", action="store_true",
-                        help="small preset, 3 updates, no compiled variants, groups of 2 for 800 frames")
+                        help="small preset, 3 updates, no compiled variants, groups of 2 for 400 frames")
     parser.add_argument("--agents", default="", help="comma-separated methods (default: every registered one)")
     parser.add_argument("--domain", default="walker", help="domain whose sizes the methods and groups use")
     parser.add_argument("--updates", type=int, default=None, help="timed updates per row (default 300; 3 --quick)")
@@ -198,15 +198,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compile-budget-s", type=float, default=240.0,
                         help="seconds of compiled rows after which the remaining compiled rows are skipped")
     parser.add_argument("--seeds", type=int, default=None, help="members of each group (default 5; 2 --quick)")
-    parser.add_argument("--frames", type=int, default=None, help="frames of each group (default 6000; 800 --quick)")
-    parser.add_argument("--seed-frames", type=int, default=None, help="uniform-action frames first (default 2000; 200 --quick)")
+    parser.add_argument("--frames", type=int, default=None, help="frames of each group (default 6000; 400 --quick)")
+    parser.add_argument("--seed-frames", type=int, default=None, help="uniform-action frames first (default 2000; 100 --quick)")
     parser.add_argument("--threads", type=int, default=0,
                         help="torch CPU threads (0: torch's default); 1 where other processes share the cores")
     parser.add_argument("--output", default=str(RESULTS_PATH), help="JSON file to write")
     args = parser.parse_args(argv)
     quick = args.quick
-    defaults = {"updates": (300, 3), "warmup": (20, 1), "seeds": (PAPER_SEEDS, 2), "frames": (6000, 800),
-                "seed_frames": (2000, 200)}
+    defaults = {"updates": (300, 3), "warmup": (20, 1), "seeds": (PAPER_SEEDS, 2), "frames": (6000, 400),
+                "seed_frames": (2000, 100)}
     for name, (full, short) in defaults.items():
         if getattr(args, name) is None:
             setattr(args, name, short if quick else full)
