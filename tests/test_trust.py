@@ -245,8 +245,8 @@ def _interrupted(argv: list[str], watch: Path) -> None:
     assert resumed.returncode == 0, resumed.stderr
 
 
-FINETUNE = ["--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "--finetune.frames", "3000",
-            "--finetune.seed-frames", "250", "--finetune.update-every", "2", "--finetune.eval-every", "1500",
+FINETUNE = ["--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "--finetune.frames", "2000",
+            "--finetune.seed-frames", "250", "--finetune.update-every", "2", "--finetune.eval-every", "1000",
             "--finetune.eval-episodes", "1", "--finetune.checkpoint-every", "1000",
             "--no-progress"]
 
