@@ -111,8 +111,8 @@ def _roundtrip(state):
 @pytest.mark.slow
 def test_resume_equals_uninterrupted_zeroshot_and_finetune(agent_name, tmp_path):
     full, split = tmp_path / "full", tmp_path / "split"
-    # An update every 8 steps: 188 updates, half of them after the resume, are enough to see a
-    # difference, and the 21 methods cost half as much.
+    # An update every 8 steps: about 190 updates, half of them after the resume, are enough to
+    # see a difference, and the resume tests of all the methods cost about half as much.
     config = tiny_run_config(agent_name, frames=2000, update_every=8)
     pretrain(config, full, progress=False)
     pretrain(dataclasses.replace(config, frames=1000), split, progress=False)
