@@ -21,7 +21,8 @@ machine and compare:
     python scripts/pipeline_hashes.py --compare before.json      # on the new one
 
 ``--compare`` prints every hash that differs (or "identical") and exits 1 if any does.
-``--agents fb,dvfb`` restricts the methods; ``--keep DIR`` keeps the run directories.
+``--agents fb,dvfb`` restricts the methods; ``--keep DIR`` keeps the run directories;
+``--ignore-key NAME`` leaves a config field that the change adds out of every hash (both sides).
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ TASK = "point_mass_maze_reach_top_left"
 ROOTS: list[str] = []
 # Fields that measure time, not what was computed.
 TIMING = {"wall_clock_s", "fps", "frames_per_s", "resumed_from"}
+IGNORED: set[str] = set()  # --ignore-key: a config field added by the change under test
 COMMON = ["--domain", DOMAIN, "--frames", "1500", "--seed-frames", "500", "--update-every", "4",
           "--checkpoint-every", "1000", "--log-every", "250", "--torch-threads", "1", "--snapshot-frames", "1000",
           "--no-progress"]
@@ -96,7 +98,7 @@ def _feed(digest, value) -> None:
     elif isinstance(value, dict):
         digest.update(b"{")
         for key in sorted(value, key=str):
-            if key in TIMING:
+            if key in TIMING or key in IGNORED:
                 continue
             digest.update(repr(key).encode())
             _feed(digest, value[key])
@@ -199,7 +201,11 @@ def main_(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=None, help="write the hashes to this JSON file")
     parser.add_argument("--compare", default=None, help="compare with the hashes of this JSON file; exit 1 if any differ")
     parser.add_argument("--keep", default=None, help="keep the run directories in this directory")
+    parser.add_argument("--ignore-key", action="append", default=[],
+                        help="leave every dict entry of this name out of the hashes (a config field that the "
+                             "change under test adds; run both sides with it); repeatable")
     args = parser.parse_args(argv)
+    IGNORED.update(args.ignore_key)
     torch.set_num_threads(1)
     agents = args.agents.split(",") if args.agents else list(agent_names())
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="dvfb_pipeline_"))
