@@ -54,6 +54,9 @@ class PretrainConfig:
     seed: int = seed_param(0, "Seed of the environment, the networks and the sampling.")
     device: str = param("auto", "Torch device: auto picks cuda when available.", DEVICES)
     torch_threads: int = param(0, "torch.set_num_threads; 0 keeps torch's default.", at_least=0)
+    processes: int = param(1, "Split a group's members (--seeds) over this many processes (at most one per "
+                           "member), each training its share as a group of its own; they share --torch-threads (0: "
+                           "the CPUs) equally, at least one thread each (docs/members.md).", at_least=1)
     seed_frames: int = param(4000, "Uniform-action steps before the first update.", at_least=0)
     update_every: int = param(2, "One gradient update every this many steps.", at_least=1)
     replay_capacity: int = param(1_000_000, "Replay capacity in transitions.", at_least=1)

@@ -44,12 +44,13 @@ from dvfb.config import replace, to_dict
 from dvfb.data import ReplayBuffer, physics_columns, read_dataset, read_info
 from dvfb.data.datasets import check_same_data
 from dvfb.errors import CheckpointError, ConfigError
+from dvfb.execution import resolve_device
 from dvfb.nets.members import member_slice
 from dvfb.runs import RunDir, RunLock, save_snapshot
 from dvfb.runs.layout import PretrainRun, snapshot_name
 from dvfb.runs.migrations import migrate_training_state
 from dvfb.runs.records import PretrainSummary
-from dvfb.runs.run_config import PretrainConfig
+from dvfb.runs.run_config import PretrainConfig, run_config_from_dict
 from dvfb.runs.snapshots import snapshot_state
 from dvfb.runs.wandb_sink import require_wandb
 from dvfb.training.observers import ProgressCount, ReplayWriter
@@ -57,6 +58,7 @@ from dvfb.training.progress import Progress, notify, progress_bars
 from dvfb.training.rollout import Lane, rollout
 from dvfb.training.seeding import seed_everything
 from dvfb.workflows.group import Group, TrainingSteps, check_lockstep
+from dvfb.workflows.processes import run_in_processes, shares, threads_per_process
 from dvfb.workflows.resources import check_memory, check_replay, check_task_in_domain, learner_state_bytes, setup_torch
 from dvfb.workflows.session import RunSession
 
@@ -81,6 +83,8 @@ def pretrain(config: PretrainConfig, run_dir: str | Path | Sequence[str | Path],
     a no-op. Disk errors end the run with one line and leave the previous checkpoint intact. In a
     group, a member whose loss or action goes non-finite stops with the usual one line naming its
     run; the others finish, and the call then raises :class:`~dvfb.errors.NonFiniteLossError`.
+    With ``config.processes`` > 1 a group's members are split over that many child processes, each
+    training its share as a group (docs/members.md, "A group over several processes").
     """
     many = not isinstance(run_dir, (str, Path))
     paths = [Path(p) for p in run_dir] if many else [Path(run_dir)]
@@ -99,21 +103,24 @@ def pretrain(config: PretrainConfig, run_dir: str | Path | Sequence[str | Path],
     configs = [replace(base, seed=seed) for seed in seeds] if many else [base]
     device = setup_torch(base)
     what = f"pretrain {base.agent} {base.domain}" + (f" ({len(paths)} members)" if many else "")
-    parts = []
-    for k, member_config in enumerate(configs):
-        rng = seed_everything(member_config.seed)
-        parts.append((rng, *_member_parts(member_config, trained_task, device)))
-        if k == 0:  # refuse a group that cannot fit before building the other members
-            _rng, env, agent, episode_length, columns = parts[0]
-            check_memory(_memory_parts(base, env, agent, episode_length, columns, dataset_info, len(paths) if many
-                                       else 1), what, device)
-    dataset = _read_dataset(base, dataset_info, parts[0][2], device, progress)
+    split = shares(len(paths), base.processes) if many else [range(1)]
+    if len(split) > 1:  # the parent checks that the whole group fits, its children build the members
+        _member_parts_checked(configs[:1], trained_task, device, dataset_info, what, len(paths), len(split))
+        parts = dataset = None
+    else:
+        parts = _member_parts_checked(configs, trained_task, device, dataset_info, what, len(paths) if many else 1)
+        dataset = _read_dataset(base, dataset_info, parts[0][2], device, progress)
     locks = [RunLock(p) for p in paths]
     with contextlib.ExitStack() as stack:
         try:
             for lock in locks:  # a member in use: the directories locked so far are removed again
                 stack.enter_context(lock)
-            runs = _run(configs, paths, parts, resume, overwrite, command, dataset, dataset_info, progress, what, many)
+            if len(split) > 1:
+                _run_split(configs, paths, split, trained_task, dataset_info, resume, overwrite, progress, command)
+                runs = [PretrainRun(path, c) for path, c in zip(paths, configs)]
+            else:
+                runs = _run(configs, paths, parts, resume, overwrite, command, dataset, dataset_info, progress, what,
+                            many)
         except BaseException:
             for lock in locks:
                 lock.remove_if_created()
@@ -121,14 +128,65 @@ def pretrain(config: PretrainConfig, run_dir: str | Path | Sequence[str | Path],
     return runs if many else runs[0]
 
 
-def _run(configs, paths, parts, resume, overwrite, command, dataset, dataset_info, progress, what, many):
+def _member_parts_checked(configs, trained_task, device, dataset_info, what, members, processes=1, check=True):
+    """Each config's random stream and :func:`_member_parts`, in order; after the first, unless
+    ``check`` is off, the check that ``members`` runs like it fit in memory (``processes`` processes
+    each hold a copy of a dataset)."""
+    parts = []
+    for k, member_config in enumerate(configs):
+        rng = seed_everything(member_config.seed)
+        parts.append((rng, *_member_parts(member_config, trained_task, device)))
+        if k == 0 and check:  # refuse a group that cannot fit before building the other members
+            _rng, env, agent, episode_length, columns = parts[0]
+            check_memory(_memory_parts(configs[0], env, agent, episode_length, columns, dataset_info, members,
+                                       processes), what, device)
+    return parts
+
+
+def _run_split(configs, paths, split, trained_task, dataset_info, resume, overwrite, progress, command):
+    """The group's members in ``len(split)`` child processes, one share each (docs/members.md, "A group
+    over several processes"); this process holds their locks."""
+    base = configs[0]
+    calls, names = [], []
+    for k, share in enumerate(split):
+        seeds = ",".join(str(configs[i].seed) for i in share)
+        what = f"pretrain {base.agent} {base.domain} (seeds {seeds} of {len(paths)} members)"
+        # configs travel as dicts: a method's config class is made at run time and does not pickle
+        calls.append(([to_dict(configs[i]) for i in share], [paths[i] for i in share], trained_task, dataset_info, resume,
+                      overwrite, progress if k == 0 else False, command, what))
+        names.append(f"seeds {seeds}")
+    run_in_processes(_run_share, calls, threads_per_process(base.torch_threads, len(split)), names,
+                     agree=lambda finished: _check_finished([f for share in finished for f in share]))
+
+
+def _run_share(config_dicts, paths, trained_task, dataset_info, resume, overwrite, progress, command, what,
+               ready) -> None:
+    """In a child process: one share of a split group, as a group of its own (its parent holds the
+    locks and has checked everything; ``ready`` waits for the other shares, see :func:`_run`)."""
+    configs = [run_config_from_dict(d, what) for d in config_dicts]
+    device = resolve_device(configs[0].device)  # the threads are this process's part, set by its parent
+    parts = _member_parts_checked(configs, trained_task, device, dataset_info, what, len(configs), check=False)
+    dataset = _read_dataset(configs[0], dataset_info, parts[0][2], device, progress)
+    _run(configs, paths, parts, resume, overwrite, command, dataset, dataset_info, progress, what, True, ready)
+
+
+def _check_finished(finished: list[bool]) -> None:
+    if any(finished) and not all(finished):
+        raise ConfigError("some members of the group have finished and others not: resume the others alone")
+
+
+def _run(configs, paths, parts, resume, overwrite, command, dataset, dataset_info, progress, what, many,
+         ready=None):
+    """The group's training loop; ``ready``: a share of a split group says here, with its members'
+    checkpoints read and nothing written yet, which of them have finished, and waits for the others."""
     sessions = [PretrainSession(c, p, resume, overwrite, command, rng, env, agent, length, columns, dataset,
                                 dataset_info)
                 for c, p, (rng, env, agent, length, columns) in zip(configs, paths, parts)]
+    if ready is not None:
+        ready([s.finished for s in sessions])
     if any(s.finished for s in sessions):
-        if all(s.finished for s in sessions):
-            return [s.run for s in sessions]
-        raise ConfigError("some members of the group have finished and others not: resume the others alone")
+        _check_finished([s.finished for s in sessions])
+        return [s.run for s in sessions]
     for session in sessions:
         session.begin()
     check_lockstep(sessions)
@@ -215,16 +273,18 @@ def _member_parts(config: PretrainConfig, trained_task: str | None, device):
     return env, agent, episode_length, columns
 
 
-def _memory_parts(config, env, agent, episode_length, columns, dataset_info, members: int) -> dict[str, int]:
-    """What ``members`` runs like this one hold: their replays (one dataset, shared, offline) and
-    their networks."""
+def _memory_parts(config, env, agent, episode_length, columns, dataset_info, members: int,
+                  processes: int = 1) -> dict[str, int]:
+    """What ``members`` runs like this one hold: their replays (offline, one dataset in each of the
+    ``processes`` processes) and their networks."""
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     capacity = config.replay_capacity if dataset_info is None else dataset_info.transitions
     replay = ReplayBuffer.estimate_nbytes(capacity, obs_dim, action_dim, agent.skill_dim, episode_length, columns)
     if members == 1:
         return {"replay": replay, "networks": learner_state_bytes(agent)}
-    return {f"replay ({'1 dataset' if dataset_info is not None else f'{members} members'})":
-            replay * (1 if dataset_info is not None else members),
+    copies = processes if dataset_info is not None else members
+    label = (f"{copies} dataset{'s' if copies > 1 else ''}" if dataset_info is not None else f"{members} members")
+    return {f"replay ({label})": replay * copies,
             f"networks ({members} members)": learner_state_bytes(agent) * members}
 
 
@@ -255,7 +315,7 @@ class PretrainSession(RunSession):
     tag = "pretrain"
     budget_flag = "--frames"
     # log: where the metrics are sent besides the run directory (docs/methods.md, "Logging to Weights & Biases").
-    resumable = ("frames", "device", "torch_threads", "log_every", "perf.compile", "perf.cuda_graphs", "log")
+    resumable = ("frames", "device", "torch_threads", "processes", "log_every", "perf.compile", "perf.cuda_graphs", "log")
 
     def __init__(self, config, run_path, resume, overwrite, command, rng, env, agent, episode_length, columns,
                  dataset=None, dataset_info=None):

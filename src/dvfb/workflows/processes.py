@@ -1,0 +1,158 @@
+"""A group split over several processes (docs/members.md, "A group over several processes").
+
+A group's members are independent runs, so they may be trained by more than one process: the
+members are cut into contiguous shares, and each share is an ordinary group of its own in a child
+process with its own torch threads. On a CPU with few cores, two single-thread processes multiply
+faster than one process on two threads (each keeps its core's caches to itself), and each share
+still stacks its members' networks (bench/README.md, "Members").
+
+The parent holds every member's run-directory lock while its children run, forwards SIGTERM and
+SIGINT to them (as SIGTERM: a second SIGINT would stop a child without its checkpoint), waits for
+all of them, and reports their errors as one.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+import threading
+import traceback
+from typing import Any, Callable, Sequence
+
+from dvfb import errors
+from dvfb.errors import DvfbError, RunInterrupted
+
+
+def shares(count: int, processes: int) -> list[range]:
+    """``count`` members cut into ``min(processes, count)`` contiguous shares whose sizes differ by
+    at most one, the larger ones first."""
+    processes = max(1, min(processes, count))
+    size, extra = divmod(count, processes)
+    out, start = [], 0
+    for k in range(processes):
+        stop = start + size + (1 if k < extra else 0)
+        out.append(range(start, stop))
+        start = stop
+    return out
+
+
+def cpus() -> int:
+    """The CPUs this process may run on (a SLURM job's allocation, not the machine's cores)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def threads_per_process(torch_threads: int, processes: int) -> int:
+    """The torch threads of each child: an equal part (at least one) of the command's ``torch_threads``,
+    or of the CPUs when it is 0."""
+    return max(1, (torch_threads if torch_threads > 0 else cpus()) // processes)
+
+
+class _Stop(Exception):
+    """The parent's answer to a child that was ready while another child was not."""
+
+
+def _child(target: Callable, args: tuple, threads: int, pipe) -> None:
+    # Set before the target builds anything: torch's thread pool sizes itself on first use.
+    import torch
+
+    torch.set_num_threads(threads)
+
+    def ready(status: Any) -> None:
+        pipe.send(("ready", status))
+        if pipe.recv() != "go":
+            raise _Stop
+
+    try:
+        target(*args, ready=ready)
+    except _Stop:
+        pipe.send(("stopped", "", None))
+        raise SystemExit(1) from None
+    except DvfbError as exc:
+        pipe.send((type(exc).__name__, str(exc), getattr(exc, "signum", None)))
+        raise SystemExit(1) from None
+    except BaseException:
+        pipe.send(("crash", traceback.format_exc(), None))
+        raise SystemExit(1) from None
+    pipe.send(None)
+
+
+def run_in_processes(target: Callable, calls: Sequence[tuple], threads: int, names: Sequence[str],
+                     agree: Callable[[list], None] | None = None) -> None:
+    """``target(*args, ready=...)`` for every ``args`` of ``calls``, each in its own child process
+    with ``threads`` torch threads, all at once; ``names[k]`` says in an error which members call
+    ``k`` trained.
+
+    Each target calls ``ready(status)`` once it has checked and read everything and before it writes
+    anything; the children go on together when every one of them is ready and ``agree`` (given the
+    statuses) raises nothing. Otherwise the ready ones stop unchanged and the first error is raised.
+    Returns when every child has ended; raises, after all have ended, the children's errors as one
+    :class:`~dvfb.errors.DvfbError` (the first child's class; a signal received here makes it
+    :class:`~dvfb.errors.RunInterrupted`).
+    """
+    context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch's threads
+    children, pipes = [], []
+    received: list[int] = []
+
+    def forward(signum, _frame) -> None:
+        received.append(signum)
+        for child in children:
+            if child.is_alive() and child.pid is not None:
+                os.kill(child.pid, signal.SIGTERM)
+
+    def answer(child, pipe) -> Any:
+        try:
+            return pipe.recv()  # blocks until the child reports or dies
+        except EOFError:
+            child.join()
+            return "crash", f"the process ended with exit code {child.exitcode} before reporting", None
+
+    main = threading.current_thread() is threading.main_thread()
+    previous = {s: signal.signal(s, forward) for s in (signal.SIGTERM, signal.SIGINT)} if main else {}
+    agreed: Exception | None = None
+    try:
+        for args in calls:
+            here, there = context.Pipe()
+            child = context.Process(target=_child, args=(target, args, threads, there))
+            child.start()
+            there.close()
+            children.append(child)
+            pipes.append(here)
+            if received:  # a signal came while starting: this child stops too
+                os.kill(child.pid, signal.SIGTERM)
+        first = [answer(child, pipe) for child, pipe in zip(children, pipes)]
+        ready = [isinstance(m, tuple) and m[0] == "ready" for m in first]
+        if all(ready) and agree is not None:
+            try:
+                agree([m[1] for m in first])
+            except DvfbError as exc:
+                agreed = exc
+        go = all(ready) and agreed is None
+        for pipe, is_ready in zip(pipes, ready):
+            if is_ready:
+                pipe.send("go" if go else "stop")
+        outcomes = [answer(child, pipe) if is_ready else message
+                    for child, pipe, message, is_ready in zip(children, pipes, first, ready)]
+    finally:
+        for child in children:
+            child.join()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    if agreed is not None:
+        raise agreed
+    failed = [(name, outcome) for name, outcome in zip(names, outcomes)
+              if outcome is not None and outcome[0] != "stopped"]
+    if not failed:
+        return
+    message = "; ".join(f"{name}: {text}" for name, (_kind, text, _signum) in failed)
+    if received or any(kind == "RunInterrupted" for _name, (kind, _t, _s) in failed):
+        signum = received[0] if received else next(s for _n, (k, _t, s) in failed if k == "RunInterrupted")
+        raise RunInterrupted(message, signum)
+    kind = failed[0][1][0]
+    if kind == "crash":
+        raise RuntimeError(message)
+    error = getattr(errors, kind, DvfbError)
+    raise error(message)

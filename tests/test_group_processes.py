@@ -1,0 +1,139 @@
+"""A group split over several processes (docs/members.md, "A group over several processes"): each
+process trains its share of the members exactly as a group of that share does in one process; a
+SIGTERM to the command checkpoints every member and the split group resumes exactly; a child's
+error is the command's one line."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from dvfb.errors import CheckpointError, ConfigError
+from dvfb.runs import RunDir, load_snapshot
+from dvfb.workflows.pretrain import pretrain
+from dvfb.workflows.processes import shares, threads_per_process
+from tiny import tiny_flags, tiny_run_config
+
+
+def _modules(path, frames):
+    return load_snapshot(RunDir(path), f"snapshot_{frames}")["modules"]
+
+
+def _assert_same_snapshots(paths_a, paths_b, frames):
+    for a_path, b_path in zip(paths_a, paths_b):
+        a, b = _modules(a_path, frames), _modules(b_path, frames)
+        assert a.keys() == b.keys()
+        for key in a:
+            for name, tensor in a[key].items():
+                assert torch.equal(tensor, b[key][name]), (a_path.name, key, name)
+
+
+def test_shares_are_contiguous_and_even():
+    assert shares(5, 2) == [range(0, 3), range(3, 5)]
+    assert shares(4, 2) == [range(0, 2), range(2, 4)]
+    assert shares(2, 8) == [range(0, 1), range(1, 2)]  # at most one process per member
+    assert shares(3, 1) == [range(0, 3)]
+    assert threads_per_process(4, 2) == 2 and threads_per_process(1, 2) == 1  # the command's threads, shared
+    assert threads_per_process(0, 2) >= 1
+
+
+@pytest.mark.slow
+def test_a_split_group_trains_each_share_as_its_own_group(tmp_path):
+    seeds = [0, 1, 2]
+    config = tiny_run_config("fb", frames=1500, processes=2)
+    split = [tmp_path / f"split_s{s}" for s in seeds]
+    runs = pretrain(config, split, seeds=seeds, progress=False)
+    assert [r.path for r in runs] == split and [r.config.seed for r in runs] == seeds
+    # The same shares in this process: seeds 0 and 1 as a group, seed 2 alone.
+    one = dataclasses.replace(config, processes=1)
+    pretrain(one, [tmp_path / "ref_s0", tmp_path / "ref_s1"], seeds=[0, 1], progress=False)
+    pretrain(dataclasses.replace(one, seed=2), tmp_path / "ref_s2", progress=False)
+    _assert_same_snapshots(split, [tmp_path / f"ref_s{s}" for s in seeds], 1500)
+    # Each member is an ordinary run whose config says how it was scheduled.
+    assert all(RunDir.open(p).path == p for p in split)
+    assert runs[2].config.processes == 2 and not (split[0] / ".lock").read_text().strip() == ""
+
+
+def _cli(*args):
+    return subprocess.Popen([sys.executable, "-m", "dvfb", "pretrain", "--agent", "fb", "--domain", "point_mass_maze",
+                             *tiny_flags("fb"), "--seed-frames", "500", "--update-every", "4",
+                             "--replay-capacity", "4000", "--torch-threads", "1", "--log-every", "100", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _logged(path) -> bool:
+    metrics = path / "metrics" / "train.jsonl"
+    return metrics.is_file() and metrics.stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_sigterm_checkpoints_every_share_and_the_split_group_resumes_exactly(tmp_path):
+    template = str(tmp_path / "cut_s{seed}")
+    cut = [tmp_path / f"cut_s{s}" for s in (0, 1, 2)]
+    frames = ["--frames", "4000", "--checkpoint-every", "1000"]
+    proc = _cli("--seeds", "0,1,2", "--run-dir", template, "--processes", "2", *frames)
+    deadline = time.monotonic() + 300
+    while not all(_logged(p) for p in cut):  # every child is updating
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    os.kill(proc.pid, signal.SIGTERM)  # the command only: it forwards the signal to its children
+    _out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    last = err.strip().splitlines()[-1]
+    assert "SIGTERM received" in last and "seeds 0,1:" in last and "seeds 2:" in last and "--resume" in last
+    for path in cut:
+        assert list((path / "checkpoints").glob("resume_*.pt")), path
+        assert not (path / "pretrain_summary.json").exists()
+    resumed = _cli("--seeds", "0,1,2", "--run-dir", template, "--processes", "2", *frames, "--resume")
+    out, err = resumed.communicate(timeout=600)
+    assert resumed.returncode == 0, err
+    whole = _cli("--seeds", "0,1,2", "--run-dir", str(tmp_path / "whole_s{seed}"), "--processes", "2", *frames)
+    out, err = whole.communicate(timeout=600)
+    assert whole.returncode == 0, err
+    _assert_same_snapshots(cut, [tmp_path / f"whole_s{s}" for s in (0, 1, 2)], 4000)
+
+
+def _tree(root):
+    """Every path under ``root`` and its bytes (a lock file's holder pid aside)."""
+    return {str(p.relative_to(root)): p.read_bytes() if p.is_file() and p.name != ".lock" else None
+            for p in sorted(root.rglob("*"))}
+
+
+def _split_pair(tmp_path):
+    """Seeds 0 and 1 pre-trained for 1,000 frames as a group split over 2 processes: the config and
+    the two run directories."""
+    config = tiny_run_config("fb", frames=1000, processes=2)
+    paths = [tmp_path / f"r_s{s}" for s in (0, 1)]
+    pretrain(config, paths, seeds=[0, 1], progress=False)
+    return config, paths
+
+
+@pytest.mark.slow
+def test_a_childs_error_is_the_commands_one_line_and_no_share_starts(tmp_path):
+    config, paths = _split_pair(tmp_path)
+    checkpoint = next((paths[1] / "checkpoints").glob("resume_*.pt"))
+    checkpoint.write_bytes(b"not a checkpoint")  # a real file the child of seed 1 cannot read
+    before = _tree(tmp_path)
+    with pytest.raises(CheckpointError) as failure:
+        pretrain(dataclasses.replace(config, frames=1500), paths, seeds=[0, 1], resume=True, progress=False)
+    message = str(failure.value)
+    assert message.startswith("seeds 1: cannot resume ") and str(paths[1]) in message and "\n" not in message
+    # Seed 0's share had read its checkpoint and waited: it stopped without writing, as a group does.
+    assert _tree(tmp_path) == before
+
+
+@pytest.mark.slow
+def test_shares_finished_and_unfinished_are_refused_together_and_change_nothing(tmp_path):
+    config, paths = _split_pair(tmp_path)
+    pretrain(dataclasses.replace(config, frames=1500), paths[0], resume=True, progress=False)  # seed 0 alone
+    before = _tree(tmp_path)
+    with pytest.raises(ConfigError, match="some members of the group have finished and others not"):
+        pretrain(dataclasses.replace(config, frames=1500), paths, seeds=[0, 1], resume=True, progress=False)
+    assert _tree(tmp_path) == before
