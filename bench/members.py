@@ -48,8 +48,10 @@ def _agents(agent_name, config, obs_dim, action_dim, n, filled_replay, device):
     return agents, replays
 
 
-def time_group(agent_name, config, obs_dim, action_dim, n, filled_replay, device, warmup, repeats) -> dict:
-    """ms per stacked update of ``n`` members (sampling excluded)."""
+def time_group(agent_name, config, obs_dim, action_dim, n, filled_replay, device, warmup, repeats,
+               seconds: float = 0.0) -> dict:
+    """ms per stacked update of ``n`` members (sampling excluded): the median of ``repeats`` updates,
+    or of as many more as fill ``seconds``."""
     agents, replays = _agents(agent_name, config, obs_dim, action_dim, n, filled_replay, device)
     group = stack_agents(agents)
     needs = group.replay_needs()
@@ -61,7 +63,8 @@ def time_group(agent_name, config, obs_dim, action_dim, n, filled_replay, device
     for _ in range(warmup):
         group.update(batch())
     times = []
-    for _ in range(repeats):
+    end = time.perf_counter() + seconds
+    while len(times) < repeats or time.perf_counter() < end:
         b = batch()
         t0 = time.perf_counter()
         group.update(b)
@@ -74,18 +77,24 @@ def time_group(agent_name, config, obs_dim, action_dim, n, filled_replay, device
 
 def separate_probe(spec: dict, filled_replay) -> dict:
     """In a subprocess: ms per update of one ordinary agent at ``spec['threads']`` threads
-    (``filled_replay``: bench/learner.py's replay builder)."""
+    (``filled_replay``: bench/learner.py's replay builder); with ``spec['members'] > 1``, ms per
+    stacked update of that many members for at least ``spec['seconds']`` (one share of a split
+    group, timed while the other shares run)."""
     from dvfb.runs.run_config import run_config_from_dict
     torch.set_num_threads(spec["threads"])
     device = torch.device(spec["device"])
     config = run_config_from_dict(spec["config"], "members probe")
+    if spec.get("members", 1) > 1:
+        return time_group(spec["agent"], config, spec["obs_dim"], spec["action_dim"], spec["members"], filled_replay,
+                          device, spec["warmup"], spec["repeats"], spec["seconds"])
     agents, replays = _agents(spec["agent"], config, spec["obs_dim"], spec["action_dim"], 1, filled_replay, device)
     agent, replay = agents[0], replays[0]
     needs = agent.replay_needs()
     for _ in range(spec["warmup"]):
         agent.update(needs.sample(replay, agent.generator))
     times = []
-    for _ in range(spec["repeats"]):
+    end = time.perf_counter() + spec.get("seconds", 0.0)
+    while len(times) < spec["repeats"] or time.perf_counter() < end:
         b = needs.sample(replay, agent.generator)
         t0 = time.perf_counter()
         agent.update(b)
@@ -93,12 +102,15 @@ def separate_probe(spec: dict, filled_replay) -> dict:
     return {"ms_per_update": 1e3 * statistics.median(times)}
 
 
-def _probe_processes(spec: dict, processes: int) -> list[dict]:
-    """``processes`` probes started together (they contend for the cores as separate runs do)."""
-    cmd = [sys.executable, str(Path(__file__).resolve().parent / "learner.py"), "--members-probe", json.dumps(spec)]
-    env = {**os.environ, "OMP_NUM_THREADS": str(spec["threads"])}
-    procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-             for _ in range(processes)]
+def _probe_processes(spec: dict, processes: int | list[dict]) -> list[dict]:
+    """``processes`` probes (or one per spec of a list) started together (they contend for the cores
+    as separate runs do)."""
+    specs = [spec] * processes if isinstance(processes, int) else processes
+    learner = str(Path(__file__).resolve().parent / "learner.py")
+    env = {**os.environ, "OMP_NUM_THREADS": str(specs[0]["threads"])}
+    procs = [subprocess.Popen([sys.executable, learner, "--members-probe", json.dumps(one)], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, env=env)
+             for one in specs]
     out = []
     for proc in procs:
         stdout, stderr = proc.communicate()
@@ -123,6 +135,23 @@ def separate_schedules(agent_name, config_dict, obs_dim, action_dim, device, thr
             "best_member_updates_per_s": schedules[best], "ms_per_update_1_process": one}
 
 
+def split_rate(agent_name, config_dict, obs_dim, action_dim, device, n, processes, warmup, repeats,
+               seconds) -> float | None:
+    """Member-updates/s of a group of ``n`` split over ``processes`` single-thread processes
+    (``dvfb pretrain --seeds ... --processes``): each times its share's stacked updates for
+    ``seconds`` while the others run; None when ``n`` < 2 or there is one process."""
+    from dvfb.workflows.processes import shares
+
+    split = shares(n, processes)
+    if len(split) < 2:
+        return None
+    spec = {"agent": agent_name, "config": config_dict, "obs_dim": obs_dim, "action_dim": action_dim,
+            "device": str(device), "warmup": warmup, "repeats": repeats, "threads": 1, "seconds": seconds}
+    results = _probe_processes(spec, [{**spec, "members": len(share)} for share in split])
+    # a share of one is an ordinary run (its own, unstacked learner), as in dvfb pretrain
+    return sum(len(share) * 1e3 / r.get("ms_per_group_update", r.get("ms_per_update")) for share, r in zip(split, results))
+
+
 def run_members(args, device, obs_dim, action_dim, model_config, filled_replay) -> dict:
     threads = torch.get_num_threads()
     warmup, repeats = (2, 5) if args.quick else (3, 10)
@@ -142,10 +171,16 @@ def run_members(args, device, obs_dim, action_dim, model_config, filled_replay) 
                    "separate_ms_per_update_1_process": separate["ms_per_update_1_process"],
                    "separate_schedules": separate["schedules_member_updates_per_s"],
                    "speedup_vs_separate": member_rate / separate["best_member_updates_per_s"]}
+            split = split_rate(agent_name, to_dict(config), obs_dim, action_dim, device, n, threads, warmup, repeats,
+                               2.0 if args.quick else 6.0) if device.type == "cpu" else None
+            if split is not None:
+                row.update({"split_processes": min(threads, n), "split_member_updates_per_s": split,
+                            "split_speedup_vs_separate": split / separate["best_member_updates_per_s"]})
             rows.append(row)
             print(f"  members {agent_name} N={n}: {group['ms_per_group_update']:.1f} ms/group update, "
                   f"{group['ms_per_member_update']:.2f} ms/member, x{row['speedup_vs_separate']:.2f} vs "
-                  f"{separate['best_schedule']}", file=sys.stderr)
+                  f"{separate['best_schedule']}" + (f"; split over {threads} processes x{split / separate['best_member_updates_per_s']:.2f}"
+                                                   if split is not None else ""), file=sys.stderr)
     report = {"learner": rows}
     if "fb" in args.agent_list:
         report["func"] = [func_row(model_config("small", "fb"), obs_dim, action_dim, n, filled_replay, device,
@@ -217,13 +252,13 @@ def func_row(config, obs_dim, action_dim, n, filled_replay, device, warmup, repe
 
 # End to end ----------------------------------------------------------------------------------------
 
-def _pretrain_cmd(agent, args, frames, threads, run_dir, seeds=None):
+def _pretrain_cmd(agent, args, frames, threads, run_dir, seeds=None, processes=1):
     cmd = [sys.executable, "-m", "dvfb", "pretrain", "--agent", agent, "--domain", args.e2e_domain,
            "--preset", "small", "--frames", str(frames), "--seed-frames", str(args.members_e2e_seed_frames),
            "--no-progress", "--log-every", "500", "--torch-threads", str(threads), "--device", "cpu"]
     if seeds is None:
         return cmd + ["--run-dir", str(run_dir)]
-    return cmd + ["--seeds", ",".join(map(str, seeds)), "--run-dir", str(run_dir)]
+    return cmd + ["--seeds", ",".join(map(str, seeds)), "--run-dir", str(run_dir), "--processes", str(processes)]
 
 
 def _timed(cmds: list[list[str]], at_once: int, threads: int) -> float:
@@ -249,6 +284,8 @@ def e2e_row(agent, n, args, device, threads) -> dict:
         tmp = Path(tmp)
         group_cmd = _pretrain_cmd(agent, args, frames, threads, tmp / "group_s{seed}", seeds)
         group_wall = _timed([group_cmd], 1, threads)
+        split_cmd = _pretrain_cmd(agent, args, frames, 1, tmp / "split_s{seed}", seeds, processes=threads)
+        split_wall = _timed([split_cmd], 1, 1) if threads > 1 and n > 1 else None
         schedules = {}
         sequential = [_pretrain_cmd(agent, args, frames, threads, tmp / f"seq_{s}") for s in seeds]
         schedules[f"1 at a time x {threads} threads"] = _timed(sequential, 1, threads)
@@ -261,8 +298,12 @@ def e2e_row(agent, n, args, device, threads) -> dict:
            "group_member_frames_per_s": n * frames / group_wall, "separate_wall_s": schedules,
            "separate_best_schedule": best, "separate_member_frames_per_s": n * frames / schedules[best],
            "speedup_vs_separate": schedules[best] / group_wall, "group_command": " ".join(group_cmd)}
+    if split_wall is not None:
+        row.update({"split_wall_s": split_wall, "split_member_frames_per_s": n * frames / split_wall,
+                    "split_speedup_vs_separate": schedules[best] / split_wall, "split_command": " ".join(split_cmd)})
     print(f"  e2e {agent} N={n}: group {group_wall:.0f} s, separate best ({best}) {schedules[best]:.0f} s, "
-          f"x{row['speedup_vs_separate']:.2f}", file=sys.stderr)
+          f"x{row['speedup_vs_separate']:.2f}" + (f"; split {split_wall:.0f} s, x{row['split_speedup_vs_separate']:.2f}"
+                                                  if split_wall is not None else ""), file=sys.stderr)
     return row
 
 
@@ -270,10 +311,15 @@ MEMBER_COLUMNS = [("agent", "agent", "<", "{}"), ("N", "members", ">", "{}"), ("
                   ("ms/member", "ms_per_member_update", ">", "{:.2f}"), ("member-updates/s", "member_updates_per_s", ">", "{:.0f}"),
                   ("separate best", "separate_best_schedule", "<", "{}"),
                   ("separate member-updates/s", "separate_member_updates_per_s", ">", "{:.0f}"),
-                  ("speed-up", "speedup_vs_separate", ">", "{:.2f}x")]
+                  ("speed-up", "speedup_vs_separate", ">", "{:.2f}x"),
+                  ("split member-updates/s", "split_member_updates_per_s", ">", "{:.0f}"),
+                  ("split speed-up", "split_speedup_vs_separate", ">", "{:.2f}x")]
 FUNC_COLUMNS = [("N", "members", ">", "{}"), ("stacked ms", "stacked_ms", ">", "{:.1f}"), ("torch.func ms", "torch_func_ms", ">", "{:.1f}")]
 E2E_COLUMNS = [("agent", "agent", "<", "{}"), ("N", "members", ">", "{}"), ("frames", "frames", ">", "{}"),
                ("group s", "group_wall_s", ">", "{:.0f}"), ("group member-frames/s", "group_member_frames_per_s", ">", "{:.1f}"),
                ("separate best", "separate_best_schedule", "<", "{}"),
                ("separate member-frames/s", "separate_member_frames_per_s", ">", "{:.1f}"),
-               ("speed-up", "speedup_vs_separate", ">", "{:.2f}x")]
+               ("speed-up", "speedup_vs_separate", ">", "{:.2f}x"),
+               ("split s", "split_wall_s", ">", "{:.0f}"),
+               ("split member-frames/s", "split_member_frames_per_s", ">", "{:.1f}"),
+               ("split speed-up", "split_speedup_vs_separate", ">", "{:.2f}x")]
