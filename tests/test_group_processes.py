@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -137,3 +138,49 @@ def test_shares_finished_and_unfinished_are_refused_together_and_change_nothing(
     with pytest.raises(ConfigError, match="some members of the group have finished and others not"):
         pretrain(dataclasses.replace(config, frames=1500), paths, seeds=[0, 1], resume=True, progress=False)
     assert _tree(tmp_path) == before
+
+
+def _children(pid: int) -> list[int]:
+    """The process ids whose parent is ``pid`` (from /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended meanwhile
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.slow
+def test_children_of_a_killed_command_checkpoint_and_stop(tmp_path):
+    template = str(tmp_path / "k_s{seed}")
+    paths = [tmp_path / f"k_s{s}" for s in (0, 1)]
+    frames = ["--frames", "20000", "--checkpoint-every", "1000"]
+    proc = _cli("--seeds", "0,1", "--run-dir", template, "--processes", "2", *frames)
+    deadline = time.monotonic() + 300
+    while not all(_logged(p) for p in paths):  # both children are updating
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    children = [pid for pid in _children(proc.pid) if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text()]
+    assert len(children) == 2, children
+    killed = time.time()
+    os.kill(proc.pid, signal.SIGKILL)  # no forwarding: the kernel tells the children
+    proc.communicate(timeout=60)
+    deadline = time.monotonic() + 120
+    while any(_alive(pid) for pid in children):
+        assert time.monotonic() < deadline, "a child of the killed command trains on"
+        time.sleep(0.2)
+    for path in paths:  # each stopped with a checkpoint written after the kill, long before its end
+        written = {p.name: p.stat().st_mtime for p in (path / "checkpoints").glob("resume_*.pt")}
+        assert any(t >= killed for t in written.values()), (path, written, killed)
+        assert not (path / "pretrain_summary.json").exists()

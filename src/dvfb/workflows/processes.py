@@ -8,7 +8,8 @@ still stacks its members' networks (bench/README.md, "Members").
 
 The parent holds every member's run-directory lock while its children run, forwards SIGTERM and
 SIGINT to them (as SIGTERM: a second SIGINT would stop a child without its checkpoint), waits for
-all of them, and reports their errors as one.
+all of them, and reports their errors as one. A child whose parent dies (``kill -9``) gets SIGTERM
+from the kernel, so it checkpoints and stops rather than train on without its locks.
 """
 
 from __future__ import annotations
@@ -55,7 +56,30 @@ class _Stop(Exception):
     """The parent's answer to a child that was ready while another child was not."""
 
 
-def _child(target: Callable, args: tuple, threads: int, pipe) -> None:
+def _die_with(parent: int) -> None:
+    """Have the kernel send this process SIGTERM when ``parent`` dies (Linux's PR_SET_PDEATHSIG): a
+    child whose command was killed outright checkpoints and stops instead of training on in
+    directories whose locks died with the command."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: the parent's signal forwarding is all there is
+        return
+    if os.getppid() != parent:  # it died before the request was made
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def _send(pipe, message) -> None:
+    try:
+        pipe.send(message)
+    except OSError:  # the parent is gone: nobody to tell
+        pass
+
+
+def _child(target: Callable, args: tuple, threads: int, pipe, parent: int) -> None:
+    _die_with(parent)
     # Set before the target builds anything: torch's thread pool sizes itself on first use.
     import torch
 
@@ -69,15 +93,15 @@ def _child(target: Callable, args: tuple, threads: int, pipe) -> None:
     try:
         target(*args, ready=ready)
     except _Stop:
-        pipe.send(("stopped", "", None))
+        _send(pipe, ("stopped", "", None))
         raise SystemExit(1) from None
     except DvfbError as exc:
-        pipe.send((type(exc).__name__, str(exc), getattr(exc, "signum", None)))
+        _send(pipe, (type(exc).__name__, str(exc), getattr(exc, "signum", None)))
         raise SystemExit(1) from None
     except BaseException:
-        pipe.send(("crash", traceback.format_exc(), None))
+        _send(pipe, ("crash", traceback.format_exc(), None))
         raise SystemExit(1) from None
-    pipe.send(None)
+    _send(pipe, None)
 
 
 def run_in_processes(target: Callable, calls: Sequence[tuple], threads: int, names: Sequence[str],
@@ -116,7 +140,7 @@ def run_in_processes(target: Callable, calls: Sequence[tuple], threads: int, nam
     try:
         for args in calls:
             here, there = context.Pipe()
-            child = context.Process(target=_child, args=(target, args, threads, there))
+            child = context.Process(target=_child, args=(target, args, threads, there, os.getpid()))
             child.start()
             there.close()
             children.append(child)
