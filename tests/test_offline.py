@@ -236,3 +236,14 @@ def test_sigterm_and_resume_of_an_offline_run_write_the_same_records_and_learner
     assert len(records(full)) == 30 and records(full) == records(split)
     a, b = snapshot_tensors(full, 1500), snapshot_tensors(split, 1500)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.slow
+def test_an_offline_group_split_over_processes_trains_each_member_as_its_own_run(dataset: Path, tmp_path: Path):
+    # Shares of one member are plain runs: each equals its separate run, each process reading the data.
+    assert offline(tmp_path / "g_s{seed}", dataset, "fb", 150, "--seeds", "0,1", "--processes", "2") == 0
+    assert offline(tmp_path / "alone", dataset, "fb", 150, "--seed", "1") == 0
+    a, b = snapshot_tensors(tmp_path / "g_s1", 150), snapshot_tensors(tmp_path / "alone", 150)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    other = snapshot_tensors(tmp_path / "g_s0", 150)  # and member 0 is not member 1
+    assert any(not torch.equal(other[k], a[k]) for k in a)
