@@ -74,16 +74,23 @@ def _logged(path) -> bool:
     return metrics.is_file() and metrics.stat().st_size > 0
 
 
+def _started_split(template: str, paths, flags) -> subprocess.Popen:
+    """``dvfb pretrain`` of one member per path split over 2 processes, once every child is updating."""
+    seeds = ",".join(str(k) for k in range(len(paths)))
+    proc = _cli("--seeds", seeds, "--run-dir", template, "--processes", "2", *flags)
+    deadline = time.monotonic() + 300
+    while not all(_logged(p) for p in paths):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    return proc
+
+
 @pytest.mark.slow
 def test_sigterm_checkpoints_every_share_and_the_split_group_resumes_exactly(tmp_path):
     template = str(tmp_path / "cut_s{seed}")
     cut = [tmp_path / f"cut_s{s}" for s in (0, 1, 2)]
     frames = ["--frames", "4000", "--checkpoint-every", "1000"]
-    proc = _cli("--seeds", "0,1,2", "--run-dir", template, "--processes", "2", *frames)
-    deadline = time.monotonic() + 300
-    while not all(_logged(p) for p in cut):  # every child is updating
-        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
-        time.sleep(0.2)
+    proc = _started_split(template, cut, frames)
     os.kill(proc.pid, signal.SIGTERM)  # the command only: it forwards the signal to its children
     _out, err = proc.communicate(timeout=300)
     assert proc.returncode == 128 + signal.SIGTERM, err
@@ -163,14 +170,8 @@ def _alive(pid: int) -> bool:
 
 @pytest.mark.slow
 def test_children_of_a_killed_command_checkpoint_and_stop(tmp_path):
-    template = str(tmp_path / "k_s{seed}")
     paths = [tmp_path / f"k_s{s}" for s in (0, 1)]
-    frames = ["--frames", "20000", "--checkpoint-every", "1000"]
-    proc = _cli("--seeds", "0,1", "--run-dir", template, "--processes", "2", *frames)
-    deadline = time.monotonic() + 300
-    while not all(_logged(p) for p in paths):  # both children are updating
-        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
-        time.sleep(0.2)
+    proc = _started_split(str(tmp_path / "k_s{seed}"), paths, ["--frames", "20000", "--checkpoint-every", "1000"])
     children = [pid for pid in _children(proc.pid) if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text()]
     assert len(children) == 2, children
     killed = time.time()
