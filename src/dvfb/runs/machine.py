@@ -5,6 +5,7 @@ ordered differently with AVX2 and AVX-512, docs/members.md), and the GPUs torch 
 
 from __future__ import annotations
 
+import os
 import platform
 from importlib import metadata
 
@@ -21,6 +22,11 @@ def _version(distribution: str) -> str | None:
         return metadata.version(distribution)
     except metadata.PackageNotFoundError:
         return None
+
+
+def cores() -> int:
+    """The CPUs this process may run on (a SLURM job's allocation, not the machine's cores)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def cpu() -> dict:

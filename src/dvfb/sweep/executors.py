@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 from dvfb.errors import DvfbError, RunInterrupted
 from dvfb.runs import read_json, write_json_atomic
+from dvfb.runs.machine import cores
 from dvfb.sweep import spec
 from dvfb.sweep.spec import SweepConfig
 from dvfb.sweep.units import (
@@ -84,10 +85,6 @@ class Outcome:
     done: list[str] = field(default_factory=list)  # unit keys finished by this run
     skipped: list[str] = field(default_factory=list)  # finished before
     failed: dict[str, str] = field(default_factory=dict)  # unit key -> reason (with the log path)
-
-
-def cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def _say(message: str) -> None:

@@ -16,7 +16,8 @@ from dvfb.config import format_value
 from dvfb.errors import ConfigError, DvfbError
 from dvfb.runs import LOCK_FILE, RunLock, last_metric_record, read_json, write_json_atomic
 from dvfb.sweep import spec
-from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, _sbatch_options, alive_jobs, cores
+from dvfb.runs.machine import cores
+from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, _sbatch_options, alive_jobs
 from dvfb.sweep.spec import Cell, SweepConfig
 from dvfb.sweep.units import (SweepDir, command, group_of, is_done, jobs_of, mark_failed, pretrain_target,
                               read_state, units_of)

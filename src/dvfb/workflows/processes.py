@@ -23,6 +23,7 @@ from typing import Any, Callable, Sequence
 
 from dvfb import errors
 from dvfb.errors import DvfbError, RunInterrupted
+from dvfb.runs.machine import cores
 
 
 def shares(count: int, processes: int) -> list[range]:
@@ -38,18 +39,10 @@ def shares(count: int, processes: int) -> list[range]:
     return out
 
 
-def cpus() -> int:
-    """The CPUs this process may run on (a SLURM job's allocation, not the machine's cores)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
 def threads_per_process(torch_threads: int, processes: int) -> int:
     """The torch threads of each child: an equal part (at least one) of the command's ``torch_threads``,
     or of the CPUs when it is 0."""
-    return max(1, (torch_threads if torch_threads > 0 else cpus()) // processes)
+    return max(1, (torch_threads if torch_threads > 0 else cores()) // processes)
 
 
 class _Stop(Exception):
