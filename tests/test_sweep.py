@@ -624,3 +624,98 @@ def test_a_second_sweep_on_the_same_directory_is_refused_before_it_touches_anyth
     assert code == 2
     assert f"in use by process {os.getpid()}" in capsys.readouterr().err
     assert sorted(p.name for p in sweep_dir.iterdir()) == [".lock"]  # no state, no sweep.json
+
+
+# ---------------------------------------------------------------------------------------------
+# a study's grid: methods per domain, earlier snapshots, results kept in git
+
+
+def test_exclude_leaves_cells_out_and_a_pattern_that_matches_nothing_is_refused():
+    config = spec.build({}, {"agents": ["fb", "rnd", "supervised"], "domains": ["walker", "point_mass_maze"],
+                             "seeds": [0, 1], "zeroshot_tasks": ["walker_walk", "point_mass_maze_reach_top_left"],
+                             "exclude": ["rnd_point_mass_maze_*", "supervised_*_s1"]}, {}, {})
+    names = [cell.name for cell in spec.cells(config)]
+    assert names == ["fb_walker_s0", "fb_walker_s1", "fb_point_mass_maze_s0", "fb_point_mass_maze_s1",
+                     "rnd_walker_s0", "rnd_walker_s1", "supervised_walker_walk_s0",
+                     "supervised_point_mass_maze_reach_top_left_s0"]
+    assert [c.name for c in spec.matching(config, ["*_walker_*"])] == [
+        "fb_walker_s0", "fb_walker_s1", "rnd_walker_s0", "rnd_walker_s1", "supervised_walker_walk_s0"]
+    with pytest.raises(spec.ConfigError, match="exclude: 'cesd_\\*' matches no cell"):
+        spec.build({}, {"agents": ["fb"], "exclude": ["cesd_*"]}, {}, {})
+    with pytest.raises(spec.ConfigError, match="leaves the sweep without cells"):
+        spec.build({}, {"agents": ["fb"], "exclude": ["fb_*"]}, {}, {})
+    with pytest.raises(spec.ConfigError, match="--only 'dvfb_\\*' matches no cell"):
+        spec.matching(config, ["dvfb_*"])
+
+
+@pytest.mark.parametrize("data, message", [
+    ({"zeroshot_snapshots": [300]}, "keeps no snapshot after 300 frames before its last (600); add it to --snapshot-frames"),
+    ({"zeroshot_snapshots": [600], "overrides": {"snapshot_frames": [600]}}, "keeps no snapshot after 600 frames"),
+    ({"zeroshot_snapshots": [300], "phases": ["pretrain"]}, "zeroshot_snapshots needs the zeroshot phase"),
+])
+def test_earlier_snapshots_must_be_kept_by_every_cell(data, message):
+    data = {"agents": ["fb"], "seeds": [0], **data}
+    data["overrides"] = {"frames": 600, "seed_frames": 300, **data.get("overrides", {})}
+    with pytest.raises(spec.ConfigError, match=message.replace("(", "\\(").replace(")", "\\)")):
+        spec.build({}, data, {}, {})
+
+
+def test_a_list_override_reaches_dvfb_pretrain_as_one_argument_per_item():
+    config = spec.build({}, {"agents": ["fb"], "seeds": [0], "zeroshot_snapshots": [300],
+                             "overrides": {"frames": 600, "seed_frames": 300, "snapshot_frames": [300, 600]}}, {}, {})
+    [cell] = spec.cells(config)
+    argv = units.command(units.SweepDir("/nowhere"), config, units.units_of(config, cell)[0], 1)
+    i = argv.index("--snapshot-frames")
+    assert argv[i + 1: i + 3] == ["300", "600"]
+    assert [u.name for u in units.units_of(config, cell)] == ["pretrain", "zeroshot@300", "zeroshot"]
+
+
+@pytest.mark.e2e
+def test_a_committed_sweep_directory_runs_nothing_from_a_clone_and_says_when_a_snapshot_is_missing(tmp_path, capsys):
+    """Earlier snapshots are evaluated as their own units; the sweep's .gitignore keeps the small
+    results only; the sweep run again from a git clone of them runs nothing, and a unit that needs a
+    snapshot the clone lacks fails with that reason instead of training again."""
+    repo = tmp_path / "repo"
+    sweep_dir = repo / "study"
+    sweep_dir.mkdir(parents=True)
+    (sweep_dir / "sweep.toml").write_text("# the study's file lives beside its results\n")
+    extra = ["--snapshot-frames", "300", "--zeroshot-snapshots", "300", "--zeroshot-tasks", "walker_walk",
+             "walker_run", "--report", "false"]
+    args = sweep_args(sweep_dir, "local", agents=("fb",), seeds=("0", "1"), extra=extra)
+    assert main([*args, "--workers", "1", "--only", "fb_walker_s0"]) == 0
+    out = capsys.readouterr().out
+    assert "no report yet" not in out  # --report false
+    run = sweep_dir / "runs" / "fb_walker_s0"
+    assert sorted(p.name for p in (run / "zeroshot").iterdir()) == [
+        "walker_run.json", "walker_run@300.json", "walker_walk.json", "walker_walk@300.json"]
+    early = json.loads((run / "zeroshot" / "walker_walk@300.json").read_text())
+    assert early["snapshot_frames"] == 300
+    assert not (sweep_dir / "runs" / "fb_walker_s1").exists()  # not among --only's cells this time
+    # The order of a local sweep: the cell's zero-shot units ran before the next pre-training.
+    log_lines = [line for line in out.splitlines() if line.startswith("[sweep] done ")]
+    assert [line.split()[-1] for line in log_lines] == ["fb_walker_s0/pretrain", "fb_walker_s0/zeroshot@300",
+                                                        "fb_walker_s0/zeroshot"]
+
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q", str(repo)], check=True)
+    subprocess.run([*git, "-C", str(repo), "add", "-A"], check=True)
+    subprocess.run([*git, "-C", str(repo), "commit", "-q", "-m", "results"], check=True)
+    kept = subprocess.run(["git", "-C", str(repo), "ls-files"], capture_output=True, text=True, check=True).stdout
+    assert "study/runs/fb_walker_s0/zeroshot/walker_walk@300.json" in kept
+    assert "study/runs/fb_walker_s0/pretrain_summary.json" in kept
+    assert not any(part in kept for part in ("snapshots/", "checkpoints/", "state/", "logs/", "/tb/"))
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "-q", str(repo), str(clone)], check=True)
+    cloned = clone / "study"
+    capsys.readouterr()
+    assert main([*sweep_args(cloned, "local", agents=("fb",), seeds=("0", "1"), extra=extra), "--workers", "1",
+                 "--only", "fb_walker_s0"]) == 0
+    assert "0 unit(s) run, 3 already done" in capsys.readouterr().out
+    # A missing result whose snapshot did not travel: the reason, and nothing trained again.
+    (cloned / "runs" / "fb_walker_s0" / "zeroshot" / "walker_run@300.json").unlink()
+    assert main([*sweep_args(cloned, "local", agents=("fb",), seeds=("0", "1"), extra=extra), "--workers", "1",
+                 "--only", "fb_walker_s0"]) == 1
+    out = capsys.readouterr().out
+    assert "has finished pre-training but not its snapshot after 300 frames" in out
+    assert not (cloned / "runs" / "fb_walker_s0" / "snapshots").exists()
+    assert unit_state(cloned, "fb_walker_s0", "zeroshot@300")["state"] == "failed"

@@ -94,11 +94,12 @@ def run_from_args(args: argparse.Namespace) -> int:
     from dvfb.sweep import runner  # lazy: the sweep's machinery loads when the command runs
 
     path, config = config_from_args(args)
+    only = getattr(args, "only", None) or None
     if getattr(args, "dry_run", False):
-        for line in runner.dry_run(path, config):
+        for line in runner.dry_run(path, config, only):
             print(f"[sweep] {line}")
         return 0
-    outcome = runner.run(path, config)
+    outcome = runner.run(path, config, only)
     print(f"[sweep] {len(outcome.done)} unit(s) run, {len(outcome.skipped)} already done, "
           f"{len(outcome.failed)} failed or not run; status: dvfb sweep status {path}")
     for reason in outcome.failed.values():
@@ -144,6 +145,9 @@ def register(sub, agent: str) -> None:
                                          "ones are reported with their log and do not stop the others. Exit "
                                          "status 1 when a unit failed.")
     add_run_arguments(q)
+    q.add_argument("--only", nargs="+", default=None, metavar="PATTERN",
+                   help="run only the cells whose names match one of these shell-style patterns this time, e.g. "
+                        "'*_walker_*' (the others wait for a later run; the report waits until every cell is done)")
     q.add_argument("--dry-run", action="store_true",
                    help="build and check every cell's config (the checks of a real run) and print the cells, jobs "
                         "and units it would run, and the pre-training commands; creates, runs and submits nothing")

@@ -23,4 +23,6 @@ A sweep directory holds::
     SWEEP/slurm/                   submitit's job scripts and logs (slurm executor)
     SWEEP/jobs.json                SLURM job ids of the units submitted (slurm executor)
     SWEEP/report/                  the report over seeds (dvfb report), one per swept value
+    SWEEP/.gitignore               leaves checkpoints, snapshots, state and logs out of git, so that
+                                   a committed sweep directory holds its small results
 """

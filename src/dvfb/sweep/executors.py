@@ -3,7 +3,8 @@
 * ``debug``: in this process, one unit after the other (each cell's pre-training first).
 * ``local``: a pool of worker threads, at most the number of cores, each running one unit as a
   ``dvfb`` subprocess with ``cores / workers`` torch threads; a cell's zero-shot and fine-tuning
-  units are queued when its pre-training has finished. (submitit's local executor starts every
+  units start when its pre-training has finished, before any pre-training that has not started,
+  so that cells finish (and their results can be kept) one after the other. (submitit's local executor starts every
   job at once and knows no dependencies, hence this pool.)
 * ``slurm``: submitit job arrays, one per phase, with a concurrency limit and per-phase
   resources. A zero-shot or fine-tuning array has the same cells at the same indices as the
@@ -124,10 +125,10 @@ def _dependents_not_run(outcome: Outcome, units: list[Unit], why: str) -> None:
 # debug and local
 
 
-def run_debug(sweep: SweepDir, config: SweepConfig) -> Outcome:
+def run_debug(sweep: SweepDir, config: SweepConfig, only: list[spec.Cell] | None = None) -> Outcome:
     outcome = Outcome()
     threads = config.torch_threads
-    for first, rest in jobs_of(config):
+    for first, rest in jobs_of(config, only):
         if _record(outcome, first, lambda u=first: run_unit(str(sweep.path), u.cell.name, u.name, threads, True), True):
             for unit in rest:
                 _record(outcome, unit, lambda u=unit: run_unit(str(sweep.path), u.cell.name, u.name, threads, True), True)
@@ -136,7 +137,7 @@ def run_debug(sweep: SweepDir, config: SweepConfig) -> Outcome:
     return outcome
 
 
-def run_local(sweep: SweepDir, config: SweepConfig) -> Outcome:
+def run_local(sweep: SweepDir, config: SweepConfig, only: list[spec.Cell] | None = None) -> Outcome:
     """The worker pool. SIGINT (Ctrl-C) or SIGTERM stops the sweep: no further unit starts, the
     running phases get SIGTERM and checkpoint, and the sweep raises RunInterrupted once they have
     exited (exit status 128 + the signal); repeating the command continues it."""
@@ -145,6 +146,9 @@ def run_local(sweep: SweepDir, config: SweepConfig) -> Outcome:
     _say(f"local executor: {workers} worker(s), {threads} torch thread(s) each")
     outcome = Outcome()
     pending: dict[concurrent.futures.Future, tuple[Unit, list[Unit]]] = {}
+    # Units wait here, not in the pool's queue, so that a finished pre-training's dependents go
+    # ahead of the pre-trainings that have not started (a cell is done as early as it can be).
+    waiting: list[tuple[Unit, list[Unit]]] = list(jobs_of(config, only))
     received: list[int] = []
 
     def on_signal(signum, frame) -> None:
@@ -155,26 +159,23 @@ def run_local(sweep: SweepDir, config: SweepConfig) -> Outcome:
     clear_stop()
     try:
         with concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="dvfb-sweep") as pool:
-            def start(unit: Unit, dependents: list[Unit]) -> None:
-                future = pool.submit(run_unit, str(sweep.path), unit.cell.name, unit.name, threads)
-                pending[future] = (unit, dependents)
+            def fill() -> None:
+                while waiting and len(pending) < workers and not received:
+                    unit, dependents = waiting.pop(0)
+                    future = pool.submit(run_unit, str(sweep.path), unit.cell.name, unit.name, threads)
+                    pending[future] = (unit, dependents)
 
-            for first, rest in jobs_of(config):
-                start(first, rest)
+            fill()
             while pending:
-                if received:
-                    for future in list(pending):
-                        if future.cancel():  # queued, never started
-                            pending.pop(future)
                 finished, _ = concurrent.futures.wait(pending, timeout=0.5,
                                                       return_when=concurrent.futures.FIRST_COMPLETED)
                 for future in finished:
                     unit, dependents = pending.pop(future)
                     if _record(outcome, unit, future.result) and not received:
-                        for dependent in dependents:
-                            start(dependent, [])
+                        waiting[:0] = [(dependent, []) for dependent in dependents]
                     elif not received:
                         _dependents_not_run(outcome, dependents, f"the pre-training of {unit.cell.name} did not finish")
+                fill()
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
@@ -301,12 +302,14 @@ def _submit_array(executor, config: SweepConfig, phase: str, units: list[Unit], 
     return [job.job_id for job in jobs]
 
 
-def run_slurm(sweep: SweepDir, config: SweepConfig) -> Outcome:
+def run_slurm(sweep: SweepDir, config: SweepConfig, only: list[spec.Cell] | None = None) -> Outcome:
     alive = alive_jobs()
     recorded: dict[str, str] = read_json(sweep.jobs_path) if sweep.jobs_path.is_file() else {}
     # What was done before this run started: the summary counts each unit once, as done before,
     # done now or failed.
-    done_before = [u.key for cell in spec.cells(config) for u in units_of(config, cell) if is_done(sweep, config, u)]
+    jobs = jobs_of(config, only)
+    done_before = [u.key for cell in (spec.cells(config) if only is None else only) for u in units_of(config, cell)
+                   if is_done(sweep, config, u)]
 
     def in_flight(unit: Unit) -> str | None:
         job = recorded.get(unit.key)
@@ -317,7 +320,6 @@ def run_slurm(sweep: SweepDir, config: SweepConfig) -> Outcome:
     pretrain_batch: list[Unit] = []  # cells whose pre-training is submitted now
     ready: dict[str, list[Unit]] = {}  # phase -> units whose pre-training is done: no dependency
     after_flight: list[tuple[Unit, str]] = []  # units whose pre-training job is still in flight
-    jobs = jobs_of(config)
     dependents = {first.key: rest for first, rest in jobs}
     for first, rest in jobs:
         todo = [u for u in rest if not is_done(sweep, config, u) and in_flight(u) is None]
@@ -397,5 +399,5 @@ def _wait_for_jobs(sweep: SweepDir, config: SweepConfig, waiting: dict[str, str]
     return outcome
 
 
-EXECUTORS: dict[str, Callable[[SweepDir, SweepConfig], Outcome]] = {
+EXECUTORS: dict[str, Callable[[SweepDir, SweepConfig, list[spec.Cell] | None], Outcome]] = {
     "debug": run_debug, "local": run_local, "slurm": run_slurm}

@@ -19,8 +19,28 @@ from dvfb.sweep import spec
 from dvfb.runs.machine import cores
 from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, _sbatch_options, alive_jobs
 from dvfb.sweep.spec import Cell, SweepConfig
-from dvfb.sweep.units import (SweepDir, command, group_of, is_done, jobs_of, mark_failed, pretrain_target,
-                              read_state, units_of)
+from dvfb.sweep.units import (KEPT_FILES, SweepDir, command, group_of, is_done, jobs_of, mark_failed,
+                              pretrain_target, read_state, units_of)
+
+
+# What a sweep directory keeps out of git: everything but the small result files (configs,
+# summaries, zero-shot results, curves, metric records), so that a committed sweep directory is its
+# results and the sweep, run again from a clone, runs only what is missing (docs/sweeps.md).
+GITIGNORE = """\
+# Written by dvfb sweep: what git leaves out of this sweep directory (docs/sweeps.md, "Keeping the
+# results"). The configs, summaries, zero-shot results, curves and metric records stay, so that
+# the sweep, run again from a clone, runs only what is missing.
+checkpoints/
+snapshots/
+tb/
+wandb/
+analysis/
+state/
+logs/
+slurm/
+jobs.json
+.lock
+"""
 
 
 def prepare(path: Path, requested: SweepConfig) -> SweepDir:
@@ -34,6 +54,8 @@ def prepare(path: Path, requested: SweepConfig) -> SweepDir:
     else:
         check_new_sweep_dir(path)
     write_json_atomic(sweep.config_path, spec.to_dict(requested))
+    if not sweep.gitignore_path.exists():
+        sweep.gitignore_path.write_text(GITIGNORE, encoding="utf-8")
     return sweep
 
 
@@ -51,17 +73,20 @@ def check_new_sweep_dir(path: Path) -> None:
     if path.exists() and not path.is_dir():
         raise ConfigError(f"--dir {path} is a file; give a directory for the sweep")
     if (path.exists() and not (path / spec.SWEEP_FILE).exists()
-            and any(p.name != LOCK_FILE for p in path.iterdir())):
+            and any(p.name not in (LOCK_FILE, *KEPT_FILES) for p in path.iterdir())):
         raise ConfigError(f"{path} exists and is not a sweep directory (no {spec.SWEEP_FILE}); choose another --dir")
 
 
-def run(path: Path, config: SweepConfig) -> Outcome:
-    """Run every unit of the sweep that is not done yet, then write the reports.
+def run(path: Path, config: SweepConfig, only: list[str] | None = None) -> Outcome:
+    """Run every unit of the sweep that is not done yet, then write the reports. With ``only``
+    (shell-style patterns of cell names), run only those cells' units this time; the others wait
+    for a later run, and the reports wait until every cell is done.
 
     One sweep process per directory (the run directories' lock, on the sweep directory): a second
     one is refused naming the first's process id, before it reads or writes any state.
     """
     check_new_sweep_dir(path)  # before the lock file is written into it
+    chosen = spec.matching(config, only) if only else None
     lock = RunLock(path)
     with lock:
         try:
@@ -70,13 +95,18 @@ def run(path: Path, config: SweepConfig) -> Outcome:
             lock.remove_if_created()
             raise
         close_dead_units(sweep, config)
-        outcome = EXECUTORS[config.executor](sweep, config)
+        outcome = EXECUTORS[config.executor](sweep, config, chosen)
         if config.report:
-            write_reports(sweep, config)
+            left = [cell.name for cell in spec.cells(config) if not all(is_done(sweep, config, u)
+                                                                        for u in units_of(config, cell))]
+            if chosen is not None and left:
+                print(f"[sweep] no report yet: {len(left)} cell(s) of the sweep are not done (--only)")
+            else:
+                write_reports(sweep, config)
         return outcome
 
 
-def dry_run(path: Path, config: SweepConfig) -> list[str]:
+def dry_run(path: Path, config: SweepConfig, only: list[str] | None = None) -> list[str]:
     """What ``dvfb sweep run --dry-run`` prints: the cells, the jobs and the units a run would start,
     after the checks of a real run (every cell's config, built by :func:`dvfb.sweep.spec.build`;
     the sweep directory; a stored grid; the slurm executor's extra options). Nothing is created,
@@ -90,8 +120,9 @@ def dry_run(path: Path, config: SweepConfig) -> list[str]:
             _sbatch_options(config.slurm.extra_sbatch)
         except (DvfbError, ValueError) as exc:  # ValueError: shlex's unbalanced quotes
             raise ConfigError(f"slurm.extra_sbatch: {exc}") from exc
+    chosen = spec.matching(config, only) if only else None
     cells = spec.cells(config)
-    jobs = jobs_of(config)
+    jobs = jobs_of(config, chosen)
     state = "continues the sweep in" if sweep.config_path.is_file() else "would create"
     lines = [f"dry run: nothing is created, run or submitted; a run {state} {path}",
              f"{len(cells)} cell(s): agents {', '.join(config.agents)}; domains {', '.join(config.domains)}; "
@@ -101,7 +132,7 @@ def dry_run(path: Path, config: SweepConfig) -> list[str]:
         units = []
         for unit in units_of(config, cell):
             text = unit.name
-            if unit.phase == "zeroshot":
+            if unit.phase == "zeroshot" and unit.snapshot is None:
                 text += f" ({len(spec.zeroshot_tasks(config, cell))} tasks)"
             units.append(text)
         rows.append((cell.name, f"{spec.cell_config(config, cell).frames:,}", ", ".join(units)))
@@ -110,6 +141,9 @@ def dry_run(path: Path, config: SweepConfig) -> list[str]:
     units = [unit for first, rest in jobs for unit in (first, *rest)]
     todo = [unit for unit in units if not is_done(sweep, config, unit)]
     per_phase = {phase: sum(u.phase == phase for u in todo) for phase in spec.PHASES}
+    if chosen is not None:
+        lines.append(f"--only: this run takes {len(jobs)} of the sweep's {len(jobs_of(config))} pre-training "
+                     "process(es) and their units")
     lines.append(f"{len(jobs)} pre-training process(es) of {config.seeds_per_job} seed(s) at most; "
                  f"{len(units)} unit(s), {len(todo)} to run (" + ", ".join(f"{n} {p}" for p, n in per_phase.items())
                  + f"), {len(units) - len(todo)} already done; executor {config.executor}")

@@ -14,6 +14,7 @@ Each combination is a :class:`Cell`, named from its values
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import itertools
 import json
 import re
@@ -38,7 +39,8 @@ EXECUTORS = ("local", "slurm", "debug")
 CELL_FIELDS = ("agent", "domain", "seed", "preset", "torch_threads")
 # The fields that define what a sweep computes; a re-run into the same directory must match them.
 # Executor fields may change between runs (start locally, continue on SLURM).
-GRID_FIELDS = ("agents", "domains", "seeds", "preset", "phases", "zeroshot_tasks", "finetune_tasks", "overrides")
+GRID_FIELDS = ("agents", "domains", "seeds", "preset", "phases", "zeroshot_tasks", "zeroshot_snapshots",
+               "finetune_tasks", "exclude", "overrides")
 SWEEP_FILE = "sweep.json"
 
 
@@ -85,9 +87,15 @@ class SweepConfig:
     preset: str = param("small", "Base configuration of every cell.", ("small", "paper", "code"))
     phases: list[str] = param(["pretrain", "zeroshot"], "Phases: pretrain, zeroshot, finetune (pretrain always).")
     zeroshot_tasks: list[str] = param(["all"], "Zero-shot tasks; all = every task of the cell's domain.")
+    zeroshot_snapshots: list[int] = param([], "Earlier snapshots (their frames) that are evaluated zero-shot too, "
+                                              "besides the final one; each must be among the cells' "
+                                              "snapshot_frames (an override).", at_least=1)
     finetune_tasks: list[str] = param([], "Fine-tuning tasks (all = every task of the domain).")
     overrides: dict[str, list] = param({}, "Pre-training config options of the cells, as lists of values; "
                                            "several values make a grid axis.")
+    exclude: list[str] = param([], "Cells left out of the grid, as shell-style patterns of their names (e.g. "
+                                   "rnd_point_mass_maze_* for a method on one domain only, supervised_*_s2 for "
+                                   "fewer seeds of one method); each must match a cell.")
     executor: str = param("local", "Where phases run: local worker processes, slurm jobs, or debug "
                                    "(in this process, one after the other).", EXECUTORS)
     workers: int = param(0, "local: phases that run at once; 0 = the number of cores.")
@@ -244,6 +252,16 @@ def check(config: SweepConfig) -> None:
             raise ConfigError(f"{what}: {', '.join(stray)} is not a task of {', '.join(config.domains)} (dvfb tasks)")
     if "finetune" in config.phases and not config.finetune_tasks:
         raise ConfigError("the finetune phase needs finetune_tasks (--finetune-tasks TASK ...)")
+    if config.zeroshot_snapshots and "zeroshot" not in config.phases:
+        raise ConfigError("zeroshot_snapshots needs the zeroshot phase")
+    if len(set(config.zeroshot_snapshots)) != len(config.zeroshot_snapshots):
+        raise ConfigError(f"zeroshot_snapshots lists a value twice: {config.zeroshot_snapshots}")
+    every = _grid(config)
+    for pattern in config.exclude:
+        if not any(fnmatch.fnmatchcase(cell.name, pattern) for cell in every):
+            raise ConfigError(f"exclude: {pattern!r} matches no cell of the sweep (dvfb sweep run --dry-run lists them)")
+    if not cells(config):
+        raise ConfigError("exclude leaves the sweep without cells")
     if config.workers < 0 or config.torch_threads < 0:
         raise ConfigError("workers and torch_threads must be >= 0")
     if config.slurm.array_parallelism < 1:
@@ -252,12 +270,31 @@ def check(config: SweepConfig) -> None:
     if len(set(names)) != len(names):
         raise ConfigError("two cells of the sweep get the same name; give the swept values distinct texts")
     for cell in cells(config):
-        cell_config(config, cell)  # every cell's config must be valid
+        run = cell_config(config, cell)  # every cell's config must be valid
+        for frames in config.zeroshot_snapshots:
+            if frames >= run.frames or frames not in run.snapshot_frames:
+                raise ConfigError(f"zeroshot_snapshots: cell {cell.name} keeps no snapshot after {frames} frames before "
+                                  f"its last ({run.frames}); add it to --snapshot-frames (now "
+                                  f"{format_value(run.snapshot_frames) or 'none'})")
 
 
 def cells(config: SweepConfig) -> list[Cell]:
-    """The grid, in the order agents, domains, swept values, seeds."""
+    """The grid, in the order agents, domains, swept values, seeds, without the excluded cells."""
+    return [cell for cell in _grid(config)
+            if not any(fnmatch.fnmatchcase(cell.name, pattern) for pattern in config.exclude)]
 
+
+def matching(config: SweepConfig, patterns: list[str]) -> list[Cell]:
+    """The sweep's cells whose names match one of ``patterns`` (shell-style); each pattern must match one."""
+    every = cells(config)
+    for pattern in patterns:
+        if not any(fnmatch.fnmatchcase(cell.name, pattern) for cell in every):
+            raise ConfigError(f"--only {pattern!r} matches no cell of the sweep (dvfb sweep run --dry-run lists them)")
+    return [cell for cell in every if any(fnmatch.fnmatchcase(cell.name, p) for p in patterns)]
+
+
+def _grid(config: SweepConfig) -> list[Cell]:
+    """Every combination of agents, domains, swept values and seeds."""
     out = []
     for agent in config.agents:
         cls = _run_config_class(agent)
@@ -322,10 +359,14 @@ def cell_config(config: SweepConfig, cell: Cell):
 
 
 def pretrain_flags(cell: Cell) -> list[str]:
-    """The override flags of the cell for ``dvfb pretrain``."""
+    """The override flags of the cell for ``dvfb pretrain``; a list value is one argument per item,
+    as the command's list options take them (``--snapshot-frames 25000 50000``)."""
     flags: list[str] = []
     for key, value in cell.values:
-        flags += [flag_name(key), format_value(value)]
+        if isinstance(value, (list, tuple)):
+            flags += [flag_name(key), *(format_value(item) for item in value)]
+        else:
+            flags += [flag_name(key), format_value(value)]
     return flags
 
 

@@ -1,21 +1,27 @@
 """One phase of one cell, a *unit*: when it is done, the ``dvfb`` command that runs or resumes it,
 and the record of its attempts (README "Sweeps", docs/sweeps.md).
 
-Units: ``pretrain``, ``zeroshot`` (every zero-shot task of the cell, one command) and
+Units: ``pretrain``, ``zeroshot`` (every zero-shot task of the cell, one command, with the final
+snapshot), ``zeroshot@<frames>`` (the same with an earlier snapshot, ``zeroshot_snapshots``) and
 ``finetune-<task>``. A unit runs the ``dvfb`` command line, so a sweep computes exactly what the
 commands of the README compute, and resumes the way a user would:
 
 * pre-training is done when ``pretrain_summary.json`` reports the cell's frames; otherwise it
   continues with ``--resume`` from the latest checkpoint, or starts over (``--overwrite``) when it
   was stopped before its first checkpoint;
-* zero-shot is done when ``zeroshot/<task>.json`` exists for every task; only missing tasks run;
+* zero-shot is done when ``zeroshot/<task>.json`` (``<task>@<frames>.json`` for an earlier
+  snapshot) exists for every task; only missing tasks run;
 * fine-tuning is done when ``finetune/<task>/finetune_summary.json`` exists, else it resumes or
   starts like pre-training.
 
 With ``seeds_per_job > 1`` the units of a group's leader run for every member of the group
 (:func:`grouped`); the other members' units are never run themselves.
 
-A finished unit is never run again, so a re-run rewrites nothing in a finished run.
+A finished unit is never run again, so a re-run rewrites nothing in a finished run. Whether a unit
+is done is read from the small result files alone (summaries, zero-shot results), so a sweep
+directory committed without its snapshots and checkpoints (the ``.gitignore`` the sweep writes)
+is complete again on another machine: only what is missing runs. A zero-shot or fine-tuning unit
+that is missing while its cell's snapshot is not there says so instead of training again.
 """
 
 from __future__ import annotations
@@ -57,11 +63,20 @@ class UnitInterrupted(DvfbError):
     """A unit's command was stopped by a signal; a re-run or requeue continues it."""
 
 
+# Files a directory may hold before a sweep starts in it (its sweep file and notes, kept beside
+# the results it makes): a sweep starts in a new directory or one with only these.
+KEPT_FILES = (".gitignore", "README.md", "sweep.toml")
+
+
 class SweepDir:
     """The paths of a sweep directory (layout in the dvfb.sweep docstring)."""
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
+
+    @property
+    def gitignore_path(self) -> Path:
+        return self.path / ".gitignore"
 
     @property
     def config_path(self) -> Path:
@@ -98,9 +113,12 @@ class Unit:
     cell: Cell
     phase: str  # pretrain, zeroshot or finetune
     task: str | None = None  # the fine-tuning task
+    snapshot: int | None = None  # a zero-shot unit's earlier snapshot (frames); None: the final one
 
     @property
     def name(self) -> str:
+        if self.snapshot is not None:
+            return f"{self.phase}@{self.snapshot}"
         return self.phase if self.task is None else f"{self.phase}-{self.task}"
 
     @property
@@ -112,6 +130,7 @@ def units_of(config: SweepConfig, cell: Cell) -> list[Unit]:
     """The cell's units; the first is its pre-training, on which the others depend."""
     units = [Unit(cell, "pretrain")]
     if spec.zeroshot_tasks(config, cell):
+        units += [Unit(cell, "zeroshot", snapshot=frames) for frames in sorted(config.zeroshot_snapshots)]
         units.append(Unit(cell, "zeroshot"))
     units += [Unit(cell, "finetune", task) for task in spec.finetune_tasks(config, cell)]
     return units
@@ -125,12 +144,15 @@ def group_of(config: SweepConfig, cell: Cell) -> list[Cell]:
     return next(group for group in spec.job_groups(config) if cell in group)
 
 
-def jobs_of(config: SweepConfig) -> list[tuple[Unit, list[Unit]]]:
+def jobs_of(config: SweepConfig, only: list[spec.Cell] | None = None) -> list[tuple[Unit, list[Unit]]]:
     """What the executors run: each pre-training job (a cell's, or a group leader's for the group)
     with the units that wait for it (its cell's other phases; a group's run as groups too, in
-    the leader's units)."""
+    the leader's units). With ``only``, the jobs of those cells (a group's when one of its cells
+    is among them)."""
     jobs = []
     for group in spec.job_groups(config) if config.seeds_per_job > 1 else [[c] for c in spec.cells(config)]:
+        if only is not None and not any(cell in only for cell in group):
+            continue
         units = units_of(config, group[0])
         jobs.append((units[0], units[1:]))
     return jobs
@@ -169,9 +191,11 @@ def pretrain_done(sweep: SweepDir, config: SweepConfig, cell: Cell) -> bool:
     return cell_run(sweep, config, cell).is_finished()
 
 
-def missing_zeroshot_tasks(sweep: SweepDir, config: SweepConfig, cell: Cell) -> list[str]:
+def missing_zeroshot_tasks(sweep: SweepDir, config: SweepConfig, cell: Cell, snapshot: int | None = None) -> list[str]:
+    """The zero-shot tasks of the cell without a result for the snapshot (default: the final one)."""
     run = cell_run(sweep, config, cell)
-    return [t for t in spec.zeroshot_tasks(config, cell) if not run.zeroshot_result(t, run.config.frames).is_file()]
+    frames = run.config.frames if snapshot is None else snapshot
+    return [t for t in spec.zeroshot_tasks(config, cell) if not run.zeroshot_result(t, frames).is_file()]
 
 
 def finetune_run(sweep: SweepDir, config: SweepConfig, cell: Cell, task: str) -> FinetuneRun:
@@ -185,7 +209,7 @@ def is_done(sweep: SweepDir, config: SweepConfig, unit: Unit) -> bool:
     if unit.phase == "pretrain":
         return all(pretrain_done(sweep, config, cell) for cell in cells)
     if unit.phase == "zeroshot":
-        return not any(missing_zeroshot_tasks(sweep, config, cell) for cell in cells)
+        return not any(missing_zeroshot_tasks(sweep, config, cell, unit.snapshot) for cell in cells)
     return all(finetune_run(sweep, config, cell, unit.task).is_finished() for cell in cells)
 
 
@@ -220,16 +244,29 @@ def command(sweep: SweepDir, config: SweepConfig, unit: Unit, torch_threads: int
     for member in group:
         if not pretrain_done(sweep, config, member):
             raise UnitFailed(f"{unit.key}: the pre-training of {member.name} has not finished")
+        _check_snapshot(cell_run(sweep, config, member), unit)
     runs = [str(sweep.run_path(member)) for member in group]
     if unit.phase == "zeroshot":
         # A group evaluates together the members that lack a task's result (docs/members.md).
         missing = [t for t in spec.zeroshot_tasks(config, cell)
-                   if any(t in missing_zeroshot_tasks(sweep, config, member) for member in group)]
-        return ["zeroshot", *runs, "--task", *missing, *(["--skip-existing"] if len(group) > 1 else [])]
+                   if any(t in missing_zeroshot_tasks(sweep, config, member, unit.snapshot) for member in group)]
+        snapshot = ["--snapshot", str(unit.snapshot)] if unit.snapshot is not None else []
+        return ["zeroshot", *runs, "--task", *missing, *snapshot, *(["--skip-existing"] if len(group) > 1 else [])]
     flags = [_continue_flags(finetune_run(sweep, config, member, unit.task).path) for member in group]
     # A group's members checkpoint together: one resumes, one starts over, the whole group does.
     flag = ["--resume"] if ["--resume"] in flags else (["--overwrite"] if ["--overwrite"] in flags else [])
     return ["finetune", *runs, "--task", unit.task, "--no-progress", *flag]
+
+
+def _check_snapshot(run: PretrainRun, unit: Unit) -> None:
+    """A unit that evaluates or fine-tunes a snapshot needs its file. A finished pre-training can
+    lack it when its directory came from a commit of the small result files only (the sweep's
+    ``.gitignore``): then the unit fails with the reason rather than training the cell again."""
+    frames = unit.snapshot if unit.snapshot is not None else run.config.frames
+    if not run.snapshot_path(frames).is_file():
+        raise UnitFailed(f"{unit.key}: {run.path} has finished pre-training but not its snapshot after {frames} "
+                         "frames (results copied without snapshots?); to pre-train the cell again, move its "
+                         "directory away and repeat the sweep command")
 
 
 def read_state(sweep: SweepDir, unit: Unit) -> dict | None:
@@ -387,7 +424,11 @@ def run_unit(sweep_path: str, cell_name: str, unit_name: str, torch_threads: int
         raise UnitInterrupted(f"{unit.key} was not started: the sweep is stopping")
     log = sweep.log_path(unit)
     log.parent.mkdir(parents=True, exist_ok=True)
-    argv = command(sweep, config, unit, torch_threads)
+    try:
+        argv = command(sweep, config, unit, torch_threads)
+    except UnitFailed as exc:
+        _write_state(sweep, unit, state="failed", ended=time.time(), reason=str(exc))
+        raise
     attempts = (read_state(sweep, unit) or {}).get("attempts", 0) + 1
     with open(log, "a", encoding="utf-8") as file:
         file.write(f"\n=== attempt {attempts} on {socket.gethostname()} at {time.strftime('%Y-%m-%d %H:%M:%S')}: "
