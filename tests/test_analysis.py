@@ -458,3 +458,75 @@ def test_crosscheck_table_reads_dvfb_runs_harness_outputs_and_metrics(tmp_path, 
     assert "| dvfb | ortho_loss | -2.5 |" in out and "| dvfb | rnd_reward | - |" in out
     with pytest.raises(SystemExit, match="no zero-shot result for t_c"):
         table.main(["--tasks", "t_a,t_c", f"dvfb={tmp_path}/dvfb_s0"])
+
+
+# ---------------------------------------------------------------------------------------------
+# zero-shot over the pre-training budget
+
+
+def _budget_runs(root: Path) -> None:
+    """dvfb and fb (3 seeds) at 50k and 100k frames on walk and run, the supervised reference
+    (one seed per task) at both snapshots; min-max: random 0 and the final supervised 100, so
+    the normalised scores are the returns."""
+    at = {"dvfb": {50_000: ([10, 20, 30], [40, 50, 60]), 100_000: ([60, 70, 80], [90, 100, 110])},
+          "fb": {50_000: ([5, 15, 25], [5, 15, 25]), 100_000: ([50, 60, 70], [50, 60, 70])}}
+    for agent, snapshots in at.items():
+        for seed in range(3):
+            run = make_pretrain_run(root / f"{agent}_s{seed}", agent=agent, seed=seed, zeroshot={
+                "walker_walk": snapshots[100_000][0][seed], "walker_run": snapshots[100_000][1][seed]})
+            for task, values in zip(("walker_walk", "walker_run"), snapshots[50_000]):
+                _earlier_result(run, task, 50_000, values[seed])
+    for task, (early, final) in {"walker_walk": (50, 100), "walker_run": (60, 100)}.items():
+        run = make_pretrain_run(root / f"supervised_{task}", agent="supervised", zeroshot={task: final})
+        _earlier_result(run, task, 50_000, early)
+
+
+def _earlier_result(run: Path, task: str, frames: int, value: float) -> None:
+    config = json.loads((run / "config.json").read_text())
+    write_json_atomic(run / "zeroshot" / f"{task}@{frames}.json", {
+        "task": task, "domain": config["domain"], "agent": config["agent"], "preset": "small",
+        "pretrain_seed": config["seed"], "seed": config["seed"], "snapshot_frames": frames, "mean_return": value,
+        "std_return": 0.0, "returns": [value], "eval_episodes": 1, "z": [0.0] * 4})
+
+
+def test_zeroshot_over_the_budget_iqm_ranking_and_probability_of_improvement(tmp_path: Path, capsys):
+    root = tmp_path / "runs"
+    _budget_runs(root)
+    random_file = tmp_path / "random.json"
+    write_json_atomic(random_file, {"domain": "walker", "seed": 0, "tasks": {
+        t: {"mean_return": 0.0, "returns": [0.0]} for t in ("walker_walk", "walker_run")}})
+    out = tmp_path / "report"
+    assert main(["report", str(root), "--out", str(out), "--random", str(random_file),
+                 "--bootstrap-samples", "200"]) == 0
+    printed = capsys.readouterr().out
+    rows = list(csv.DictReader(io.StringIO((out / "budget_zeroshot.csv").read_text())))
+    iqm = {(r["method"], int(r["frames"])): float(r["value"]) for r in rows if r["metric"] == "iqm"}
+    # IQM of 6 runs x tasks: the mean of the middle four.
+    assert iqm == pytest.approx({("dvfb", 50_000): 35.0, ("dvfb", 100_000): 85.0, ("fb", 50_000): 15.0,
+                                 ("fb", 100_000): 60.0, ("supervised (same frames)", 50_000): 55.0,
+                                 ("supervised (same frames)", 100_000): 100.0})
+    assert {r["normaliser"] for r in rows} == {"minmax"}
+    bands = {(r["method"], int(r["frames"])): (r["low"], r["high"]) for r in rows if r["metric"] == "iqm"}
+    assert all(bands[("dvfb", f)][0] and bands[("fb", f)][0] for f in (50_000, 100_000))
+    assert bands[("supervised (same frames)", 50_000)] == ("", "")  # one run per task: no interval
+    improvement = {(r["method"], int(r["frames"])): float(r["value"]) for r in rows
+                   if r["metric"] == "probability_of_improvement"}
+    # walk: 6 of 9 pairs, run: 9 of 9 at 50k; walk 7 of 9 (ties count a half), run 9 of 9 at 100k
+    assert improvement[("dvfb > fb", 50_000)] == pytest.approx((6 / 9 + 1) / 2)
+    assert improvement[("dvfb > fb", 100_000)] == pytest.approx((7 / 9 + 1) / 2)
+    md = (out / "budget_zeroshot.md").read_text()
+    assert "- 50,000 frames: supervised (same frames) > dvfb > fb" in md
+    assert "- 100,000 frames: supervised (same frames) > dvfb > fb" in md
+    assert "Table 1 at 50,000 pre-training frames: walker" in md
+    assert md_row(md.split("Table 1 at 50,000")[1], "walker", "walker_walk")[:2] == ["20.0 ± 10.0", "15.0 ± 10.0"]
+    assert "![Zero-shot over the pre-training budget](budget_zeroshot.png)" in (out / "report.md").read_text()
+    assert_png_has_content(out / "budget_zeroshot.png")
+    assert "## Zero-shot over the pre-training budget" in printed
+    # The final table is unchanged by the earlier snapshots.
+    assert md_row((out / "table1_zeroshot.md").read_text(), "walker", "walker_walk")[:2] == ["70.0 ± 10.0",
+                                                                                              "60.0 ± 10.0"]
+
+
+def test_no_budget_section_without_earlier_snapshots(walker_runs: Path, tmp_path: Path):
+    report = make_report([walker_runs], tmp_path / "out")
+    assert report.budget is None and not (tmp_path / "out" / "budget_zeroshot.md").exists()

@@ -202,15 +202,19 @@ def _has(data: dict, metric: str) -> bool:
     return metric == RETURN or metric in data
 
 
-def zeroshot_scores(runs: Iterable[PretrainRun], metric: str = RETURN) -> list[Score]:
+def zeroshot_scores(runs: Iterable[PretrainRun], metric: str = RETURN, every_snapshot: bool = False) -> list[Score]:
     """The final-snapshot zero-shot results ``RUN/zeroshot/<task>.json`` (paper Table 1; with
     ``metric="success_rate"`` Table 6, from the results that carry a success rate).
 
-    ``<task>@<frames>.json`` files (earlier snapshots) are not part of the table.
+    ``<task>@<frames>.json`` files (earlier snapshots) are not part of the table; with
+    ``every_snapshot`` they are read too (the budget curves, :mod:`dvfb.analysis.budget`), each
+    score's ``pretrain_frames`` telling its snapshot.
     """
     scores = []
     for run in runs:
-        for path, result in run.run.zeroshot_results(AnalysisError):
+        results = (run.run.snapshot_zeroshot_results(AnalysisError) if every_snapshot
+                   else run.run.zeroshot_results(AnalysisError))
+        for path, result in results:
             value = getattr(result, metric)
             if value is None:
                 continue

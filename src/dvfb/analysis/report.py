@@ -15,6 +15,9 @@ and optional random-policy files. Outputs, in ``out_dir``:
 * ``aggregates_<kind>.md/.csv`` and ``profiles_<kind>.png`` for ``kind`` zeroshot and finetune:
   IQM, mean, median, optimality gap and the probability of improvement with stratified bootstrap
   intervals, and performance profiles (:mod:`dvfb.analysis.aggregate_report`);
+* ``budget_zeroshot.md/.csv/.png`` (when some method has zero-shot results at two snapshots or
+  more): every snapshot's Table 1, the IQM against the pre-training frames with its intervals, the
+  ranking and the probability of improvement at each snapshot (:mod:`dvfb.analysis.budget`);
 * with ``paper=True``, ``paper_comparison.md/.csv``: the report's domain averages beside the
   paper's published numbers, with a note on the runs' budget against the paper's
   (:mod:`dvfb.analysis.paper`, docs/reproduce.md); report.md gets the same section.
@@ -29,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dvfb.analysis import aggregate_report
+from dvfb.analysis import budget as budget_curves
 from dvfb.analysis import paper as paper_tables
 from dvfb.analysis.aggregate_report import BootstrapConfig
 from dvfb.analysis.common import (
@@ -63,6 +67,7 @@ class Report:
     notes: list[str] = field(default_factory=list)
     aggregates: dict[str, aggregate_report.Aggregates] = field(default_factory=dict)  # kind -> aggregates
     paper: paper_tables.PaperComparison | None = None  # with paper=True (dvfb report --paper)
+    budget: budget_curves.Budget | None = None  # zero-shot at several snapshots (dvfb.analysis.budget)
 
 
 def _outputs(out_dir: Path, has_zeroshot: bool, has_finetune: bool, success: tuple[bool, bool]) -> list[Path]:
@@ -118,6 +123,11 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
         if result is not None and result.scopes:
             report.aggregates[kind] = result
     planned = _outputs(out_dir, bool(zs or rnd), bool(ft), (bool(zs_success or rnd_success), bool(ft_success)))
+    final = report.aggregates.get("zeroshot")
+    report.budget = budget_curves.compute(budget_curves.snapshot_scores(runs.pretrain), rnd,
+                                          final.normaliser if final is not None else None, spread, bootstrap)
+    if report.budget is not None:
+        planned += [out_dir / f"budget_zeroshot.{suffix}" for suffix in ("md", "csv", "png")]
     numbers, budget = None, None
     if paper:  # the package's tables are read (and checked) before anything is written
         numbers, budget = paper_tables.load_paper_numbers(), paper_tables.run_budget(runs, zs, ft)
@@ -193,6 +203,14 @@ def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_su
         _write(out_dir / f"aggregates_{kind}.md", section + "\n", report)
         _write(out_dir / f"aggregates_{kind}.csv", aggregate_report.to_csv(result), report)
         report.notes += result.notes
+        sections += [section, ""]
+    if report.budget is not None:
+        figure = budget_curves.plot(report.budget, out_dir / "budget_zeroshot.png", bootstrap.confidence)
+        report.files.append(figure)
+        section = budget_curves.markdown(report.budget, bootstrap, figure.name)
+        _write(out_dir / "budget_zeroshot.md", section + "\n", report)
+        _write(out_dir / "budget_zeroshot.csv", budget_curves.to_csv(report.budget), report)
+        report.notes += report.budget.notes
         sections += [section, ""]
     success_sections = []
     if zs_success or rnd_success:

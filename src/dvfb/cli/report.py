@@ -27,6 +27,10 @@ def cmd_report(args: argparse.Namespace) -> int:
                         print(f"### {table.title}: {name}-normalised\n\n{to_markdown(table, normalised=name)}\n")
     for result in report.aggregates.values():
         print(aggregate_report.markdown(result, bootstrap, None, heading_level=2))
+    if report.budget is not None:
+        from dvfb.analysis import budget  # lazy: as above
+
+        print(budget.markdown(report.budget, bootstrap, None, heading_level=2))
     if report.paper is not None:
         from dvfb.analysis.paper import to_markdown as paper_markdown  # lazy: as above
 

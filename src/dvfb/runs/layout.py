@@ -194,6 +194,14 @@ class PretrainRun(RunDir):
         return [(path, ZeroShotResult.read(path, error)) for path in sorted(self.zeroshot_dir.glob("*.json"))
                 if "@" not in path.stem and not path.name.startswith(".")]
 
+    def snapshot_zeroshot_results(self, error: type[Exception] = RunDirError) -> list[tuple[Path, ZeroShotResult]]:
+        """The results of every snapshot, final and earlier (``<task>.json`` and
+        ``<task>@<frames>.json``; each result records its snapshot's frames), by file name."""
+        if not self.zeroshot_dir.is_dir():
+            return []
+        return [(path, ZeroShotResult.read(path, error)) for path in sorted(self.zeroshot_dir.glob("*.json"))
+                if not path.name.startswith(".")]
+
     # Fine-tuning runs ----------------------------------------------------------------------------
     @property
     def finetune_dir(self) -> Path:
