@@ -273,22 +273,41 @@ def test_finetune_resume_continues_as_if_uninterrupted(pretrained: Path):
             assert torch.equal(a[part][key], b[part][key]), (part, key)
 
 
+def test_the_demo_ranks_dvfb_and_random_only_when_two_standard_errors_apart():
+    from dvfb.cli.demo import demo_table, mean_and_error, verdict
+
+    assert mean_and_error([10.0, 12.0, 14.0]) == pytest.approx((12.0, 2.0 / np.sqrt(3)))
+    assert verdict([10.0, 12.0, 14.0], [0.0, 1.0, 2.0]) == "DVFB above random"
+    assert verdict([0.0, 1.0, 2.0], [10.0, 12.0, 14.0]) == "DVFB below random"
+    # 15 ± 5 against 15.5 ± 0.5: the difference is well inside two standard errors.
+    assert verdict([10.0, 20.0], [15.0, 16.0]) == "not distinguishable"
+    # Exactly two standard errors apart is not apart: 2 * hypot(1, 0) = 2.
+    assert verdict([1.0, 3.0], [0.0, 0.0]) == "not distinguishable"
+    table = demo_table([("walker_walk", [10.0, 12.0, 14.0], [0.0, 1.0, 2.0])]).splitlines()
+    assert table[-1].split() == ["walker_walk", "12.0", "±", "1.2", "1.0", "±", "0.6", "DVFB", "above", "random"]
+
+
 @pytest.mark.slow
 @pytest.mark.e2e
 def test_demo_runs_the_bundled_agent_a_gif_and_a_live_pretraining(tmp_path: Path):
     """`dvfb demo` (the README's first command) with tiny budgets, rendering with software OpenGL."""
     out = tmp_path / "demo"
     done = subprocess.run([sys.executable, "-m", "dvfb", "demo", "--out-dir", str(out), "--frames", "1200",
-                           "--inference-steps", "200", "--eval-episodes", "1", "--gif-steps", "20", "--no-progress"],
+                           "--inference-steps", "200", "--eval-episodes", "2", "--gif-steps", "20", "--no-progress"],
                           capture_output=True, text=True,
                           env={**os.environ, "MUJOCO_GL": "osmesa", "PYOPENGL_PLATFORM": "osmesa"})
     assert done.returncode == 0, done.stderr
     rows = [line.split() for line in done.stdout.splitlines() if line.startswith("walker_")]
     assert [r[0] for r in rows] == ["walker_stand", "walker_walk", "walker_run", "walker_flip"]
-    assert all(len(r) == 3 and float(r[1]) >= 0 and float(r[2]) >= 0 for r in rows)
     bundled = out / "pretrained_dvfb_walker"
+    for row in rows:  # task, DVFB mean ± s.e., random mean ± s.e., the verdict
+        assert row[2] == row[5] == "±" and " ".join(row[7:]) in (
+            "not distinguishable", "DVFB above random", "DVFB below random")
+        result = json.loads((bundled / "zeroshot" / f"{row[0]}.json").read_text())
+        returns = np.asarray(result["returns"])
+        assert len(returns) == 2 and result["inference"]["steps"] == 200
+        assert (row[1], row[3]) == (f"{returns.mean():.1f}", f"{returns.std(ddof=1) / np.sqrt(2):.1f}")
     provenance = json.loads((bundled / "provenance.json").read_text())
-    assert provenance["frames"] == 20000 and "dvfb pretrain" in provenance["command"]
-    assert len(list((bundled / "zeroshot").glob("walker_*.json"))) == 4
+    assert "dvfb pretrain" in provenance["command"]
     assert (out / "walker_walk.gif").stat().st_size > 0
     assert json.loads((out / "live_pretrain" / "pretrain_summary.json").read_text())["frames"] == 1200
