@@ -205,6 +205,27 @@ def test_segments_sample_around_mu_end_with_their_episode_and_read_the_replay_ex
     assert int(finetuner.update(None)["search_updates"]) == 0
 
 
+@pytest.mark.parametrize("which", ["mu", "z"])
+def test_terminal_values_read_mu_and_z_i_on_the_unit_sphere(which):
+    """``terminal_value = mu`` or ``z``: ``V = min_k F_k(s, mean pi(s, proj z_i), proj z_i) . w`` with
+    ``w`` the unit vector mu or z_i (spec methods_2025 §2.4), not its projection (sqrt(d) times it)."""
+    model = make_model()
+    finetuner = built(model, terminal_value=which, sigma=0.5)
+    g = torch.Generator().manual_seed(4)
+    sample = torch.nn.functional.normalize(torch.randn(D, generator=g), dim=0)
+    finetuner.search_step(torch.nn.functional.normalize(torch.randn(2, D, generator=g), dim=-1),
+                          torch.tensor([1.0, 2.0], dtype=torch.float64))  # mu moves off z_r's direction
+    obs = torch.randn(OBS, generator=g)
+    unit = finetuner.mu.detach() if which == "mu" else sample
+    assert float(unit.norm()) == pytest.approx(1.0, abs=1e-6)
+    skill = project_to_sphere(sample)
+    with torch.no_grad():
+        forward = model.forward_map(obs[None], model.actor(obs[None], skill[None]), skill[None])  # (heads, 1, d)
+        expected = float((forward[:, 0] @ unit).min())
+    assert finetuner.terminal_value(obs, sample) == pytest.approx(expected, rel=1e-5, abs=1e-6)
+    assert abs(expected) > 1e-3  # a value whose scale the projection would change by sqrt(d)
+
+
 # ---------------------------------------------------------------------------------------------
 # The reward model and ReLA (spec §2.7 items 4-5)
 
@@ -413,15 +434,41 @@ def test_lola_fine_tunes_end_to_end_and_resumes_exactly(pretrained):
     assert search["segment_start"] == 1800 and 0 < float(search["metrics"]["search_step_angle"]) < math.pi
 
 
-def test_rela_fine_tunes_end_to_end(pretrained):
-    run = _finetune(pretrained, "rela", 1000, method="rela", rela_batch_size=32, rela_hidden_dim=16)
+def test_rela_fine_tunes_end_to_end_on_its_own_steps_with_w_r_from_the_inference_steps(pretrained):
+    """ReLA's replay holds only its fine-tuning steps (spec methods_2025 §2.3): 1000 of them after
+    1000 frames, where the option that mixes the 300 labelled inference steps in holds 1300. Both
+    fit the same reward model w_r on those 300 steps, bit for bit, and both move z."""
+    options = dict(method="rela", rela_batch_size=32, rela_hidden_dim=16)
+    run = _finetune(pretrained, "rela", 1000, **options)
+    mixed = _finetune(pretrained, "rela_mixed", 1000, rela_inference_replay=True, **options)
     curve = json.loads((run.path / "curve.json").read_text())
     assert [p["frames"] for p in curve["curve"]] == [0, 1000]
     record = json.loads((run.path / "metrics" / "train.jsonl").read_text().splitlines()[-1])
     assert {"residual_critic_loss", "fb_value", "residual_value", "z_start_cos"} <= set(record)
     assert all(math.isfinite(v) for v in record.values() if isinstance(v, float))
-    state = load_checkpoint(run.path)["finetuner"]["finetuner"]
-    assert float(state["z"].norm()) == pytest.approx(math.sqrt(D), abs=1e-4)
+    own, both = load_checkpoint(run.path), load_checkpoint(mixed.path)
+    assert int(own["replay"]["lengths"].sum()) == 1000
+    assert int(both["replay"]["lengths"].sum()) == 1000 + FAST_INFERENCE["steps"]
+    state, state_mixed = own["finetuner"]["finetuner"], both["finetuner"]["finetuner"]
+    assert torch.equal(state["w_r"], state_mixed["w_r"]) and float(state["w_r"].abs().sum()) > 0
+    assert torch.equal(state["residual_coef"], state_mixed["residual_coef"])
+    for s in (state, state_mixed):
+        assert float(s["z"].norm()) == pytest.approx(math.sqrt(D), abs=1e-4)
+        assert not torch.allclose(s["z"], s["start"] * math.sqrt(D))  # z moved from z_r
+    assert not torch.equal(state["z"], state_mixed["z"])  # the two learned from different data
+
+
+def test_rela_without_the_inference_steps_waits_for_a_batch_of_its_own():
+    assert LatentSearchConfig(method="rela", rela_batch_size=64).first_update() == 64
+    assert LatentSearchConfig(method="rela", rela_batch_size=64, seed_frames=100).first_update() == 100
+    assert LatentSearchConfig(method="rela", rela_batch_size=64, rela_inference_replay=True).first_update() == 0
+    assert LatentSearchConfig(rela_batch_size=64).first_update() == 0  # LoLA: its update only reports
+    assert LatentSearchFinetuner.replays_inference_data(LatentSearchConfig())
+    assert not LatentSearchFinetuner.replays_inference_data(LatentSearchConfig(method="rela"))
+    with pytest.raises(ConfigError, match="rela-batch-size 1024") as info:
+        LatentSearchConfig(method="rela", frames=1000).check()
+    assert "\n" not in str(info.value)
+    LatentSearchConfig(method="rela", frames=1000, rela_inference_replay=True).check()
 
 
 def test_the_report_draws_the_episodes_of_interaction_beside_the_fine_tuning_curves(pretrained, tmp_path):

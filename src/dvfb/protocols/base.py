@@ -89,6 +89,10 @@ class FinetuneSchedule:
     def check(self) -> None:
         require_updates("--finetune.frames", self.frames, "--finetune.seed-frames", self.seed_frames)
 
+    def first_update(self) -> int:
+        """The step of the first update: after the seed frames (a fine-tuner may wait longer)."""
+        return self.seed_frames
+
 
 class Finetuner(nn.Module):
     """Base class of the fine-tuners: built as ``cls(model, skill, config)`` from the pre-trained
@@ -161,6 +165,16 @@ class Finetuner(nn.Module):
     @classmethod
     def keeps_inference_data(cls, config: Any) -> bool:
         return False
+
+    @classmethod
+    def replays_inference_data(cls, config: Any) -> bool:
+        """Whether the kept inference data seed the fine-tuning replay; if not, the workflow hands
+        them to :meth:`bind_inference_data` alone."""
+        return True
+
+    def bind_inference_data(self, data) -> None:
+        """The zero-shot protocol's labelled data (a replay buffer) of a fresh run, kept apart from
+        the fine-tuning replay (:meth:`replays_inference_data` false)."""
 
     @classmethod
     def check(cls, model, config: Any) -> None:

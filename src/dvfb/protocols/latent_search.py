@@ -4,8 +4,9 @@ Sikchi et al. 2025, arXiv 2504.07896): LoLA, or ReLA as an option.
 Nothing pre-trained changes: the actor, F and B (SF's psi and phi) stay bit-identical, and only the
 skill the policy acts with moves. Both methods start from the zero-shot skill ``z_r`` of the method's
 own zero-shot protocol and read the task's reward model ``w_r`` (the unprojected, unfiltered
-least-squares reward vector, in reward units) once from the labelled inference steps, which this
-fine-tuner keeps in its replay.
+least-squares reward vector, in reward units) once from the labelled inference steps. LoLA keeps
+those steps in its replay (it never samples them); ReLA keeps them apart, so that its replay holds
+only its own fine-tuning steps, unless ``rela_inference_replay`` mixes them in.
 
 * **LoLA** (lookahead latent adaptation, the default): a search distribution ``N(mu, sigma^2 I)`` on
   the unit sphere. Every rollout segment (``horizon`` steps, or fewer where an episode ends first)
@@ -76,9 +77,9 @@ class LatentSearchConfig(FinetuneSchedule):
     horizon: int = param(250, "LoLA: steps per rollout segment H (a segment also ends with its episode).",
                          at_least=1)
     samples: int = param(8, "LoLA: segments (z samples) per update of mu, k (leave-one-out needs 2).", at_least=2)
-    terminal_value: str = param("w_r", "LoLA: the reward vector of the terminal value min F(s_H, pi(s_H, z_i), "
-                                "z_i) . w: w_r (the reward model), mu (proj(mu): the search mean as FB's own "
-                                "skill value), z (proj(z_i)), or none.", TERMINAL_VALUES)
+    terminal_value: str = param("w_r", "LoLA: the reward vector w of the terminal value min F(s_H, pi(s_H, z_i), "
+                                "z_i) . w: w_r (the reward model), mu (the search mean on the unit sphere), z "
+                                "(the segment's sample z_i on the unit sphere), or none.", TERMINAL_VALUES)
     rollout_actions: str = param("auto", "Actions of the fine-tuning rollouts: mean, sample (the pre-training "
                                  "policy noise), or auto (LoLA mean, ReLA sample).", ROLLOUT_ACTIONS)
     cov_ridge: float = param(0.0, "Ridge added to Cov of the inference features in the reward model "
@@ -89,6 +90,29 @@ class LatentSearchConfig(FinetuneSchedule):
                              "step).", above=0)
     rela_tau: float = param(0.005, "ReLA: EMA rate of the residual critic's target.", above=0, at_most=1)
     rela_batch_size: int = param(1024, "ReLA: transitions per update.", at_least=1)
+    rela_inference_replay: bool = param(False, "ReLA: also replay the labelled inference steps in its updates; "
+                                        "false: its replay holds only the fine-tuning steps (Sikchi et al.), "
+                                        "the inference steps give w_r only, and its first update waits for "
+                                        "rela_batch_size steps of its own.")
+
+    def uses_inference_replay(self) -> bool:
+        """Whether the labelled inference steps are in the fine-tuning replay: LoLA keeps them there
+        (it never samples them); ReLA only with ``rela_inference_replay``."""
+        return self.method != "rela" or self.rela_inference_replay
+
+    def first_update(self) -> int:
+        """ReLA without the inference steps starts from an empty replay: it waits for a batch's worth
+        of its own steps, so that its first batches are not a handful of transitions repeated."""
+        if self.uses_inference_replay():
+            return self.seed_frames
+        return max(self.seed_frames, self.rela_batch_size)
+
+    def check(self) -> None:
+        super().check()
+        if self.frames <= self.first_update():
+            raise ConfigError(f"--finetune.frames {self.frames} must be larger than --finetune.rela-batch-size "
+                              f"{self.rela_batch_size}: ReLA's replay holds only its own fine-tuning steps and its "
+                              "first update waits for a batch of them (or pass --finetune.rela-inference-replay true)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -208,7 +232,11 @@ class LatentSearchFinetuner(Finetuner):
 
     @classmethod
     def keeps_inference_data(cls, config: LatentSearchConfig) -> bool:
-        return True  # the labelled inference steps give the reward model w_r (bind_replay)
+        return True  # the labelled inference steps give the reward model w_r
+
+    @classmethod
+    def replays_inference_data(cls, config: LatentSearchConfig) -> bool:
+        return config.uses_inference_replay()
 
     @classmethod
     def needs_of(cls, model: Model) -> ReplayNeeds:
@@ -237,15 +265,24 @@ class LatentSearchFinetuner(Finetuner):
     def discount(self) -> float:
         return self.model.settings.discount
 
+    def bind_inference_data(self, data) -> None:
+        """The labelled inference episodes kept apart from the replay (ReLA's default): the reward
+        model is fitted on all of them, once."""
+        if not bool(self.reward_model_ready):
+            self._fit_reward_model(data)
+
     def bind_replay(self, replay) -> None:
-        """The fine-tuning replay. Fresh, it holds only the labelled inference episodes: the reward
-        model is fitted on all of them, once (a resume loads it from the checkpoint instead)."""
+        """The fine-tuning replay. Where it holds the labelled inference episodes (LoLA; ReLA with
+        ``rela_inference_replay``) and the reward model is not fitted yet, it is fitted on all of
+        them, once (a resume loads it from the checkpoint instead)."""
         self._replay = replay
-        if bool(self.reward_model_ready):
-            return
-        if len(replay) == 0:
-            raise ConfigError("latent search needs the labelled inference steps in its replay; it holds none")
-        data = replay.transitions(gamma=1.0)
+        if not bool(self.reward_model_ready):
+            self._fit_reward_model(replay)
+
+    def _fit_reward_model(self, buffer) -> None:
+        if len(buffer) == 0:
+            raise ConfigError("latent search needs the labelled inference steps; it was given none")
+        data = buffer.transitions(gamma=1.0)
         features = self.model.backward_features(data.obs, data.next_obs)
         w_r, coef = reward_model(features, data.reward[:, 0], reward_features(self.model), self.config.cov_ridge)
         if not (torch.isfinite(w_r).all() and torch.isfinite(coef).all()):
@@ -302,14 +339,16 @@ class LatentSearchFinetuner(Finetuner):
 
     @torch.no_grad()
     def terminal_value(self, last_obs: torch.Tensor, sample: torch.Tensor) -> float:
-        """``V_i = min_k F_k(s_H, mean pi(s_H, z_i), z_i) . w`` with ``w`` as ``terminal_value`` says
-        (0 for none); the networks see ``proj(z_i)``."""
+        """``V_i = min_k F_k(s_H, mean pi(s_H, z_i), z_i) . w`` with ``w`` as ``terminal_value`` says:
+        ``w_r``, ``mu`` or ``z_i`` (both unit vectors), 0 for none; the networks see ``proj(z_i)``."""
         which = self.config.terminal_value
         if which == "none":
             return 0.0
         skill = project_to_sphere(sample).unsqueeze(0)
         obs = last_obs.reshape(1, -1)
-        task = {"w_r": self.w_r, "mu": self.skill, "z": skill[0]}[which]
+        # mu and z_i are read on the unit sphere, as the spec writes them (methods_2025 §2.4) and the
+        # public re-implementation does: only the networks' input is proj(z_i).
+        task = {"w_r": self.w_r, "mu": self.mu.detach(), "z": sample}[which]
         action = self.model.actor(obs, skill)
         return float(self.model.skill_value(obs, action, skill, task=task)[0])
 

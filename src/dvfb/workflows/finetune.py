@@ -6,8 +6,8 @@ prior skill; methods without skills: none); evaluate zero-shot (the curve's poin
 build the method's registered fine-tuner (dual-value for the FB family, URLB's for the DDPG
 agents); then ``finetune.frames`` steps of rollouts with ``pi(s, skill)`` (the skill of every step
 from the fine-tuner; uniform actions during ``seed_frames`` where it asks for them), one
-fine-tuner update every ``update_every`` steps after ``seed_frames``, and an evaluation every
-``eval_every`` steps.
+fine-tuner update every ``update_every`` steps after ``seed_frames`` (or the later first update a
+fine-tuner asks for), and an evaluation every ``eval_every`` steps.
 
 ``protocol`` chooses another fine-tuner the method may use (docs/methods.md, "Protocols"): test-time
 search over z (``latent_search``) or task inference from interaction alone (``online_inference``,
@@ -206,7 +206,7 @@ def _run(members: list[_Member], task: str, resume: bool, overwrite: bool, progr
     bar = Progress(cfg.frames, group.step, what, progress)
     checkpoints = group.checkpoints(cfg.checkpoint_every, cfg.frames, sessions[0].run.path)
     observers = [ReplayWriter(group.lanes, [s.replay for s in sessions]), ProgressCount(bar),
-                 TrainingSteps(group, cfg.seed_frames, cfg.update_every, checkpoints, after_step,
+                 TrainingSteps(group, cfg.first_update(), cfg.update_every, checkpoints, after_step,
                                lambda session, t: session.after_episode(t))]
     try:
         with checkpoints:
@@ -289,16 +289,22 @@ class FinetuneSession(RunSession):
             self.run.save_config(self.run_config)  # only now may the config change (a larger --finetune.frames)
             notify(f"[finetune] resuming {self.run.path} from step {self.step} (of {cfg.frames})")
         else:
+            held = None  # inference data the fine-tuner reads apart from its replay
             if self.finetuner_cls.infers_skill:
                 keep = self.finetuner_cls.keeps_inference_data(cfg)
                 protocol = zero_shot_protocol(get_spec(member.config.agent).zero_shot)(self.run_config.inference)
                 z, self.inference_info = protocol.task_skill(model, env, rng, max_len, keep_data=keep)
-                if keep:  # the inference episodes, as collected, with z = z_r (D12 option)
+                if keep and self.finetuner_cls.replays_inference_data(cfg):
+                    # the inference episodes, as collected, with z = z_r (D12 option)
                     _copy_episodes(self.inference_info.pop("buffer"), self.replay, z)
+                elif keep:
+                    held = self.inference_info.pop("buffer")
                 # The inference data are discarded (§8.2 step 6) unless kept above.
             else:  # no labelled data: the fine-tuner finds the skill from the interaction itself
                 z, self.inference_info = None, {"protocol": self.finetuner_cls.name, "labelled_steps": 0}
             self.finetuner = self.finetuner_cls(model, z, cfg)
+            if held is not None:
+                self.finetuner.bind_inference_data(held)
             self.curve, self.episodes = [], []
         self.finetuner.compile()
         self.z = z
