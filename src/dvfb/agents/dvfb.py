@@ -227,4 +227,8 @@ register(AgentSpec(
                        "cic": {"hidden_dim": 256}},
              "code": {"fb": {"backward_input": "code_exact"}, "exploration": {"alpha": 50.0, "rnd_input": "obs"},
                       "finetune": {"qf_coef": 50.0, "eta": 1.0}}},
-    label=dvfb_label, column=0))
+    label=dvfb_label, column=0,
+    # The paper's ablations (Tables 7 and 9-12): alpha and beta of pre-training, eta of fine-tuning
+    # (and the authors' Q_F weight, which preset code changes with it).
+    coefficients=(("exploration.alpha", "alpha"), ("exploration.alpha_mode", "alpha"), ("exploration.beta", "beta"),
+                  ("finetune.eta", "eta"), ("finetune.eta_mode", "eta"), ("finetune.qf_coef", "qf"))))

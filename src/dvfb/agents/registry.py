@@ -28,7 +28,10 @@ class AgentSpec:
     ``defaults`` overrides the run config's fields for this method. ``label(run_config,
     finetune_config)`` names the method in reports (variants such as ``dvfb_wo_ce``); by default
     the agent's name. ``column`` orders the report's columns; ``task_field`` names the config field
-    holding the task of a method that learns from its reward (the supervised reference). ``moved_fields`` maps a top-level
+    holding the task of a method that learns from its reward (the supervised reference). ``coefficients``
+    lists ``(dotted field, short name)`` pairs of the method's coefficients whose value, where it differs
+    from the run's preset, names a variant in the reports (``dvfb_alpha3``: the paper's ablations;
+    :func:`dvfb.analysis.common.method_name`). ``moved_fields`` maps a top-level
     field of configs written by older versions to where it lives now (``"update_z_every":
     "fb.skill_every"``; None: dropped), so that old run directories still load.
     """
@@ -45,6 +48,7 @@ class AgentSpec:
     label: Callable[[Any, Any], str] | None = None
     column: int = 100  # position of the method's columns in report tables (ties: registry order)
     moved_fields: dict[str, str | None] = field(default_factory=dict)
+    coefficients: tuple[tuple[str, str], ...] = ()
     # A method that learns from a task's reward (the supervised reference): the dotted run-config
     # field that names the task. None for the reward-free methods. Such a run trains in the
     # task's environment and is evaluated on that task only; a sweep gives it a cell per task.

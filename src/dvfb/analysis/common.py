@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -22,9 +23,11 @@ from pathlib import Path
 from typing import Any
 
 from dvfb.agents import AGENTS, get_spec
+from dvfb.config import to_dict
 from dvfb.errors import DvfbError
 from dvfb.files import read_json as read_json_file
 from dvfb.runs.layout import discover
+from dvfb.runs.presets import preset_config
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +46,9 @@ def method_name(run_config: Any, finetune: Any | None = None) -> str:
     (DVFB: ``dvfb_wo_ce`` for ``use_ce = false``, ``dvfb_<reward>`` for the Table 8 rewards; the FB
     family's fine-tuning ablations append ``_wo_svf`` and ``_wo_map``). A run trained offline on a
     dataset appends ``@`` and the dataset directory's name (``vcfb@rnd_walker``). ``run_config`` is the
-    pre-training run's config; ``finetune`` a fine-tuning run's ``finetune`` section.
+    pre-training run's config; ``finetune`` a fine-tuning run's ``finetune`` section. A coefficient
+    the registry lists (``AgentSpec.coefficients``) whose value differs from the run's preset adds
+    its own suffix (:func:`coefficient_suffix`), so that the paper's ablations are columns of their own.
     """
 
     agent = _field(run_config, "agent", None)
@@ -51,7 +56,7 @@ def method_name(run_config: Any, finetune: Any | None = None) -> str:
         spec = get_spec(agent)
     except DvfbError:
         return str(agent)
-    label = spec.method_label(run_config, finetune)
+    label = spec.method_label(run_config, finetune) + coefficient_suffix(spec, run_config, finetune)
     dataset = _field(run_config, "dataset", None)
     if dataset:  # offline: the method on a dataset is its own row (docs/methods.md, "Offline training")
         label += "@" + Path(dataset).name
@@ -62,6 +67,55 @@ def _field(config: Any, name: str, default: Any) -> Any:
     if isinstance(config, dict):
         return config.get(name, default)
     return getattr(config, name, default)
+
+
+def coefficient_suffix(spec: Any, run_config: Any, finetune: Any | None = None) -> str:
+    """``_alpha3``, ``_beta0.7``, ``_eta0.02``, ``_eta_adaptive``, ...: one part per coefficient of
+    ``spec.coefficients`` whose value differs from the run's preset (fine-tuning coefficients only
+    for a fine-tuning run, from its ``finetune`` section), in the registry's order. A value the
+    registry's own label already names (eta 0: ``_wo_svf``) adds nothing; a run without a known
+    preset adds nothing."""
+    reference = _preset_reference(spec.name, _field(run_config, "preset", None)) if spec.coefficients else None
+    if reference is None:
+        return ""
+    parts = []
+    for dotted, short in spec.coefficients:
+        section, _, name = dotted.partition(".")
+        source = finetune if section == "finetune" else _field(run_config, section, None)
+        value = None if source is None else _field(source, name, None)
+        base = reference.get(section, {}).get(name)
+        if value is None or base is None or value == base:
+            continue
+        if _labelled_by_registry(spec, run_config, finetune, section, name, base):
+            continue
+        parts.append(f"_{short}{value:g}" if isinstance(value, (int, float)) else f"_{short}_{value}")
+    return "".join(parts)
+
+
+@functools.lru_cache(maxsize=None)
+def _preset_dict(agent: str, preset: str) -> dict | None:
+    try:
+        return to_dict(preset_config(preset, agent))
+    except DvfbError:
+        return None
+
+
+def _preset_reference(agent: str, preset: Any) -> dict | None:
+    """The run config of ``preset`` for ``agent`` as a dict (None: not a preset of the method)."""
+    return _preset_dict(agent, preset) if isinstance(preset, str) and preset else None
+
+
+def _labelled_by_registry(spec: Any, run_config: Any, finetune: Any, section: str, name: str, base: Any) -> bool:
+    """Whether the registry's label changes when the field goes back to its preset value."""
+    def with_base(config: Any) -> dict:
+        data = dict(config) if isinstance(config, dict) else to_dict(config)
+        return {**data, name: base}
+
+    if section == "finetune":
+        return spec.method_label(run_config, with_base(finetune)) != spec.method_label(run_config, finetune)
+    data = dict(run_config) if isinstance(run_config, dict) else to_dict(run_config)
+    changed = {**data, section: with_base(data.get(section) or {})}
+    return spec.method_label(changed, finetune) != spec.method_label(run_config, finetune)
 
 
 def method_sort_key(name: str) -> tuple:
