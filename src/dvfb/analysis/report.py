@@ -18,8 +18,9 @@ and optional random-policy files. Outputs, in ``out_dir``:
 * ``budget_zeroshot.md/.csv/.png`` (when some method has zero-shot results at two snapshots or
   more): every snapshot's Table 1, the IQM against the pre-training frames with its intervals, the
   ranking and the probability of improvement at each snapshot (:mod:`dvfb.analysis.budget`);
-* with ``paper=True``, ``paper_comparison.md/.csv``: the report's domain averages beside the
-  paper's published numbers, with a note on the runs' budget against the paper's
+* with ``paper=True``, ``paper_comparison.md/.csv``: every cell of the paper's results tables, per
+  task and per average, beside the report's column of the same method and flags, with how the
+  runs behind each column compare with the paper's budget, and a note on the budget of all of them
   (:mod:`dvfb.analysis.paper`, docs/reproduce.md); report.md gets the same section.
 """
 
@@ -88,8 +89,8 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
                 curve_band: str = "ci", paper: bool = False) -> Report:
     """Discover runs under ``paths`` and write the tables, aggregates and curves into ``out_dir``.
 
-    ``paper`` adds ``paper_comparison.md/.csv`` and a section of report.md: the domain averages
-    beside the paper's published numbers (:mod:`dvfb.analysis.paper`, docs/reproduce.md).
+    ``paper`` adds ``paper_comparison.md/.csv`` and a section of report.md: the paper's cells, per
+    task and per average, beside the report's (:mod:`dvfb.analysis.paper`, docs/reproduce.md).
 
     ``normaliser`` chooses the scores of the aggregates (docs/reports.md): ``auto`` the first of
     min-max, supervised and expert that covers every task; a named one must cover them (else an
@@ -128,9 +129,10 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
                                           final.normaliser if final is not None else None, spread, bootstrap)
     if report.budget is not None:
         planned += [out_dir / f"budget_zeroshot.{suffix}" for suffix in ("md", "csv", "png")]
-    numbers, budget = None, None
+    published = None
     if paper:  # the package's tables are read (and checked) before anything is written
-        numbers, budget = paper_tables.load_paper_numbers(), paper_tables.run_budget(runs, zs, ft)
+        published = (paper_tables.load_paper_tables(), paper_tables.run_budget(runs, zs, ft),
+                     paper_tables.method_budgets(runs, [*zs, *zs_success], [*ft, *ft_success]))
         planned += [out_dir / "paper_comparison.md", out_dir / "paper_comparison.csv"]
     planned += [out_dir / "curves" / f"finetune_{task}.png" for task in curves]
     planned += [out_dir / "curves" / f"episodes_{task}.png" for task in episodes]
@@ -144,7 +146,7 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
     check_writable(out_dir)  # a read-only or full disk: one line, before the first file
     try:
         return _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_success, rnd_success,
-                             runs, curves, bootstrap, curve_band, (numbers, budget) if paper else None, episodes)
+                             runs, curves, bootstrap, curve_band, published, episodes)
     except OSError as exc:
         raise AnalysisError(f"cannot write the report in {out_dir}: {exc.strerror or exc}") from exc
 
@@ -225,8 +227,11 @@ def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_su
         _write(out_dir / "table6_success.md", "\n\n".join(success_sections) + "\n", report)
         sections += ["\n\n".join(success_sections), ""]
     if paper is not None:
-        numbers, budget = paper
-        report.paper = paper_tables.compare(report.zeroshot, report.finetune, budget, numbers)
+        published, budget, budgets = paper
+        report.paper = paper_tables.compare(report.zeroshot, report.finetune, budget,
+                                            success_zeroshot=report.success_zeroshot,
+                                            success_finetune=report.success_finetune, budgets=budgets,
+                                            tables=published)
         section = paper_tables.to_markdown(report.paper)
         _write(out_dir / "paper_comparison.md", section + "\n", report)
         _write(out_dir / "paper_comparison.csv", paper_tables.to_csv(report.paper), report)

@@ -76,10 +76,11 @@ def register(sub, agent: str) -> None:
                    help="band of the fine-tuning curves: bootstrap interval of the mean (3+ seeds), ± std or "
                         "± standard error (default: %(default)s)")
     p.add_argument("--paper", action="store_true",
-                   help="also write paper_comparison.md/.csv and a section of report.md: each domain average "
-                        "beside the paper's published number (Tables 1, 2 and 8), the difference, the published "
-                        "numbers without a run ('not run'), and how the runs' budget compares with the paper's "
-                        "(docs/reproduce.md)")
+                   help="also write paper_comparison.md/.csv and a section of report.md: every cell of the "
+                        "paper's Tables 1, 2 and 5-12, per task and per average, beside the report's column of the "
+                        "same method and flags (mean ± std, seeds), the difference, how the runs behind each column "
+                        "compare with the paper's budget (frames, preset), and the sweep files that run what is "
+                        "missing (docs/reproduce.md)")
     p.add_argument("--aggregates-only", action="store_true",
                    help="print only the aggregates (every file is still written)")
     p.set_defaults(func=cmd_report)
