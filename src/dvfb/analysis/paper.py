@@ -84,7 +84,7 @@ INCOMPLETE = "incomplete"
 PAPER_ONLY = "paper only"  # no single dvfb column (Table 5's "Average of best" of a family)
 PAPER_SCALE = "paper scale"
 
-# What each table is, and the budget the paper states for it (paper_tables.md in the spec, Table 4).
+# What each table is, and the budget the paper states for it (its captions, text and Table 4).
 TABLE_TITLES = {
     1: "zero-shot", 2: "fine-tuning (100k frames)", 5: "zero-shot, offline methods on exploration datasets",
     6: "zero-shot, point-mass maze and Meta-World", 7: "contrastive-entropy weight β, zero-shot",
@@ -268,7 +268,8 @@ def load_paper_tables() -> PaperTables:
     cells = parse_cells(_read(CELLS_FILE))
     methods = parse_methods(_read(METHODS_FILE))
     if not cells:
-        raise AnalysisError(f"the dvfb package holds no paper cells ({'/'.join(DATA_DIR)}/{CELLS_FILE}); reinstall dvfb")
+        raise AnalysisError(f"the dvfb package holds no paper cells ({'/'.join(DATA_DIR)}/{CELLS_FILE}); "
+                            "reinstall dvfb")
     seen: set[tuple] = set()
     for cell in cells:
         key = (cell.table, cell.domain, cell.task, cell.paper_name)
@@ -696,9 +697,10 @@ def to_markdown(comparison: PaperComparison, heading_level: int = 2) -> str:
         for row in averages:
             value = "–" if row.report is None else f"{row.report.mean:.{_digits(row.cell)}f}"
             status = row.status + (f" ({row.detail})" if row.detail else "")
+            seeds = "–" if row.report is None else row.report.n
             lines.append(f"| {row.cell.table} | {row.cell.domain} | {row.method} | {row.cell.paper_name} | {value} | "
-                         f"{'–' if row.report is None else row.report.n} | {row.cell.mean:g}{notes.mark(row.cell.note)} "
-                         f"| {_difference(row)} | {status} | {row.scale} |")
+                         f"{seeds} | {row.cell.mean:g}{notes.mark(row.cell.note)} | {_difference(row)} | {status} | "
+                         f"{row.scale} |")
         lines.append("")
     if notes.numbers:
         lines += ["The paper's notes:", ""] + [f"- {line}" for line in notes.lines()] + [""]

@@ -346,8 +346,8 @@ class LatentSearchFinetuner(Finetuner):
             return 0.0
         skill = project_to_sphere(sample).unsqueeze(0)
         obs = last_obs.reshape(1, -1)
-        # mu and z_i are read on the unit sphere, as the spec writes them (methods_2025 §2.4) and the
-        # public re-implementation does: only the networks' input is proj(z_i).
+        # mu and z_i are read on the unit sphere, as the spec writes them and the public
+        # re-implementation does (docs/methods.md, "Latent search"): only the networks see proj(z_i).
         task = {"w_r": self.w_r, "mu": self.mu.detach(), "z": sample}[which]
         action = self.model.actor(obs, skill)
         return float(self.model.skill_value(obs, action, skill, task=task)[0])
