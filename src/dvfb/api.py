@@ -15,6 +15,7 @@ networks for acting and inference, no optimiser) and uses the zero-shot machiner
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Callable
 
@@ -54,6 +55,14 @@ class PretrainedModel:
     def name(self) -> str:
         return self.config.agent
 
+    @property
+    def agent(self):
+        """The old name of :attr:`model`, kept for one release with a DeprecationWarning (CHANGELOG.md):
+        what ``dvfb.load`` gives has held the model, not a learner, since the model/learner split."""
+        warnings.warn("dvfb.load(...).agent is deprecated and will be removed; use .model (the same object)",
+                      DeprecationWarning, stacklevel=2)
+        return self.model
+
     def infer_z(self, obs=None, next_obs=None, rewards=None, *, reward_fn: Callable | None = None,
                 goal=None, **inference) -> torch.Tensor:
         """The skill of a task, from exactly one of:
@@ -69,8 +78,7 @@ class PretrainedModel:
             raise ConfigError("infer_z needs exactly one of (obs, next_obs, rewards), reward_fn= or goal=")
         if not self.model.skill.has_skill:
             raise ConfigError(f"{self.name!r} has a single policy and no skill to infer; call policy() without z")
-        protocol = run_protocol(self.config, inference)
-        protocol.check_source("goal" if goal is not None else "reward_fn", self.name)
+        protocol = run_protocol(self.config, inference, "goal" if goal is not None else "reward_fn")
         device = self.model.device
         if goal is not None:
             check_goal(goal, self.model.goal_widths(), self.config.domain, "goal")
@@ -142,3 +150,12 @@ def load(path: str | Path, snapshot: int | None = None, device: str | None = Non
     """Load a pre-trained model from a run directory (its newest snapshot, or ``snapshot``) or from
     an exported model's directory (see :class:`PretrainedModel`)."""
     return PretrainedModel(path, snapshot, device)
+
+
+def __getattr__(name: str):
+    # The class's old name, kept for one release with a DeprecationWarning (CHANGELOG.md).
+    if name == "PretrainedAgent":
+        warnings.warn("dvfb.api.PretrainedAgent is deprecated and will be removed; use dvfb.api.PretrainedModel",
+                      DeprecationWarning, stacklevel=2)
+        return PretrainedModel
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
