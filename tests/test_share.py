@@ -4,6 +4,7 @@ model the run itself gives."""
 
 from __future__ import annotations
 
+import os
 import pickle
 import shutil
 import subprocess
@@ -162,3 +163,77 @@ def test_a_read_only_disk_is_one_line_and_leaves_nothing(run, small_disk, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "Read-only file system" in err[0], err
     assert list(small_disk.iterdir()) == []
+
+
+def _fill(disk: Path, leave: int) -> None:
+    """A real file taking all but about ``leave`` bytes of the disk's free space."""
+    import os
+
+    stats = os.statvfs(disk)
+    with open(disk / "filler", "wb") as file:
+        file.write(b"\0" * max(0, stats.f_bavail * stats.f_frsize - leave))
+
+
+def test_a_full_disk_is_one_line_and_keeps_the_export_it_would_replace(run, small_disk, capsys):
+    def fails(argv):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "No space left on device" in err[0] and "Traceback" not in err[0], err
+
+    first = small_disk / "model"
+    assert main(["export", str(run), "--out", str(first)]) == 0
+    capsys.readouterr()
+    before = {p.name: p.read_bytes() for p in first.iterdir()}
+    _fill(small_disk, 16 * 1024)  # room for the probe and the card, not for the weights
+    fails(["export", str(run), "--out", str(small_disk / "new" / "model")])  # safetensors' own write error
+    assert sorted(p.name for p in small_disk.iterdir()) == ["filler", "model"]  # the parents it made are gone
+    fails(["export", str(run), "--out", str(first), "--overwrite", "--with-inference-data"])
+    assert {p.name: p.read_bytes() for p in first.iterdir()} == before  # the model it would replace, intact
+    assert dvfb.load(first).snapshot == 2000
+
+
+def _damaged(out: Path, tmp_path: Path, name: str, damage) -> Path:
+    copy = tmp_path / name
+    shutil.copytree(out, copy)
+    damage(copy)
+    return copy
+
+
+def _edit_config(change):
+    def damage(path: Path) -> None:
+        import json
+
+        info = json.loads((path / "config.json").read_text())
+        change(info)
+        (path / "config.json").write_text(json.dumps(info))
+    return damage
+
+
+def test_a_damaged_export_is_a_dvfb_error_naming_the_file(run, tmp_path):
+    from dvfb.errors import DvfbError
+
+    out = tmp_path / "export"
+    assert main(["export", str(run), "--out", str(out), "--with-inference-data"]) == 0
+    size = (out / "inference_data.npz").stat().st_size
+    cases = [
+        ("no_space", _edit_config(lambda info: info.pop("observation_space")), "config.json", "observation_space"),
+        ("bad_shape", _edit_config(lambda info: info.update(action_space={"shape": []})), "config.json",
+         "action_space"),
+        ("no_frames", _edit_config(lambda info: info.pop("frames")), "config.json", "'frames'"),
+        ("no_agent", _edit_config(lambda info: info["run_config"].update(agent="nope")), "config.json",
+         "unknown agent 'nope'"),
+        ("other_width", _edit_config(lambda info: info["run_config"]["fb"].update(hidden_dim=64)),
+         "model.safetensors", "does not fit 'fb''s networks"),
+        ("truncated", lambda p: os.truncate(p / "inference_data.npz", size // 2), "inference_data.npz",
+         "cannot be read"),
+        ("no_obs", lambda p: np.savez(p / "inference_data.npz", next_obs=np.zeros((3, 4), np.float32)),
+         "inference_data.npz", "'obs' is missing"),
+        ("narrow", lambda p: np.savez(p / "inference_data.npz", obs=np.zeros((3, 2), np.float32),
+                                      next_obs=np.zeros((3, 2), np.float32)), "inference_data.npz", "(N, 4)"),
+    ]
+    for name, damage, file, message in cases:
+        copy = _damaged(out, tmp_path, name, damage)
+        with pytest.raises(DvfbError) as failure:
+            dvfb.load(copy)
+        text = str(failure.value)
+        assert str(copy / file) in text and message in text and "\n" not in text, (name, text)
