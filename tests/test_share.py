@@ -237,3 +237,77 @@ def test_a_damaged_export_is_a_dvfb_error_naming_the_file(run, tmp_path):
             dvfb.load(copy)
         text = str(failure.value)
         assert str(copy / file) in text and message in text and "\n" not in text, (name, text)
+
+
+class _Hub:
+    """A stand-in hub on a loopback port that answers every request 401 and counts them."""
+
+    def __init__(self):
+        import http.server
+        import threading
+
+        hub = self
+        self.requests = 0
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def _answer(self):
+                hub.requests += 1
+                body = b'{"error": "Invalid credentials in Authorization header"}'
+                self.send_response(401)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            do_GET = do_POST = do_PUT = do_HEAD = _answer
+
+            def log_message(self, *args):
+                pass
+
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def close(self):
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def _closed_port() -> int:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def test_push_refuses_without_credentials_before_the_network_and_network_errors_are_one_line(run, tmp_path):
+    out = dvfb.load(run).save_pretrained(tmp_path / "export")
+    hub = _Hub()
+    base = {k: v for k, v in os.environ.items() if not k.startswith(("HF_", "HUGGING_FACE"))}
+    base.update(HF_HOME=str(tmp_path / "hf_home"), HF_HUB_DISABLE_TELEMETRY="1")
+
+    def push(env, repo="org/name"):
+        done = subprocess.run([sys.executable, "-m", "dvfb", "push", str(out), "--repo", repo], capture_output=True,
+                              text=True, env=env, timeout=120)
+        assert done.returncode == 2, done.stderr
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("dvfb push: error: "), done.stderr
+        return lines[0]
+
+    try:
+        assert "needs Hugging Face credentials" in push({**base, "HF_ENDPOINT": hub.url})
+        assert "--repo 'a b' is not a hub repository name" in push({**base, "HF_TOKEN": "hf_x", "HF_ENDPOINT": hub.url},
+                                                                  "a b")
+        assert hub.requests == 0  # refused before the first request
+        line = push({**base, "HF_TOKEN": "hf_x", "HF_ENDPOINT": hub.url})
+        assert hub.requests > 0 and f"cannot push {out} to org/name:" in line and "401" in line, line
+        line = push({**base, "HF_TOKEN": "hf_x", "HF_ENDPOINT": f"http://127.0.0.1:{_closed_port()}"})
+        assert f"cannot push {out} to org/name:" in line, line
+    finally:
+        hub.close()
+    # The token file (`hf auth login`) counts as credentials: the push goes on to the network.
+    (tmp_path / "hf_home").mkdir()
+    (tmp_path / "hf_home" / "token").write_text("hf_x")
+    line = push({**base, "HF_ENDPOINT": f"http://127.0.0.1:{_closed_port()}"})
+    assert f"cannot push {out} to org/name:" in line, line
