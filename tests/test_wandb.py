@@ -179,6 +179,24 @@ def test_a_resume_may_turn_wandb_on_or_off(tmp_path, no_network_wandb):
     assert load_run_config(run / "config.json").log.wandb is True
 
 
+def test_a_resume_refused_for_a_damaged_wandb_id_changes_no_file(tmp_path, no_network_wandb, capsys):
+    run = tmp_path / "maze_fb"
+    assert main(["pretrain", *TINY, "--frames", "1000", "--run-dir", str(run), *WANDB]) == 0
+    (run / "wandb_id.txt").write_text("not an id!\n")
+    capsys.readouterr()
+    before = {str(p.relative_to(run)): p.read_bytes() if p.is_file() and p.name != ".lock" else None
+              for p in sorted(run.rglob("*"))}
+    assert main(["pretrain", *TINY, "--frames", "1500", "--run-dir", str(run), *WANDB, "--resume"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    # The memory estimate may come first; the refusal is one line, and nothing was resumed.
+    assert "wandb_id.txt does not hold a W&B run id" in err[-1] and not any("resuming" in e for e in err), err
+    assert err[-1].startswith("dvfb pretrain: error: ") and len(err) <= 2, err
+    after = {str(p.relative_to(run)): p.read_bytes() if p.is_file() and p.name != ".lock" else None
+             for p in sorted(run.rglob("*"))}
+    assert after == before  # config.json still says 1,000 frames; the metrics keep their records
+    assert load_run_config(run / "config.json").frames == 1000
+
+
 def run_cli(args: list[str], env: dict, preamble: str = "") -> subprocess.CompletedProcess:
     code = f"import sys; {preamble}from dvfb.cli import main; sys.exit(main(sys.argv[1:]))"
     return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env,
