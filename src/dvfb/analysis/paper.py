@@ -35,7 +35,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 
-from dvfb.analysis.common import AnalysisError, Runs, Score
+from dvfb.analysis.common import AnalysisError, Runs, Score, split_budget_label
 from dvfb.analysis.tables import AVERAGE, Table
 
 PAPER_PRETRAIN_FRAMES = 2_000_000
@@ -196,6 +196,11 @@ class ComparisonRow:
     report_value: float | None = None
     seeds: int | None = None
     detail: str = ""  # for incomplete: the tasks the report has
+    column: str = ""  # the report's column, where it is not the method's name: one of its budgets
+
+    @property
+    def method(self) -> str:
+        return self.column or self.number.method
 
     @property
     def difference(self) -> float | None:
@@ -213,17 +218,27 @@ class PaperComparison:
         return [r for r in self.rows if r.status == COMPARED]
 
 
-def _row(number: PaperNumber, table: Table | None) -> ComparisonRow:
+def _rows(number: PaperNumber, table: Table | None) -> list[ComparisonRow]:
+    """The published number beside the report's column of its method, or beside each of the
+    columns of the method's pre-training budgets where the report keeps them apart."""
     if table is None:
-        return ComparisonRow(number, NOT_RUN)
-    cell = table.cell(number.domain, AVERAGE, number.method)
+        return [ComparisonRow(number, NOT_RUN)]
+    budgets = [c for c in table.columns if split_budget_label(c)[0] == number.method and c != number.method]
+    rows = [_row(number, table, column) for column in [number.method, *budgets]]
+    found = [row for row in rows if row.status != NOT_RUN]
+    return found or rows[:1]
+
+
+def _row(number: PaperNumber, table: Table, column: str) -> ComparisonRow:
+    name = "" if column == number.method else column
+    cell = table.cell(number.domain, AVERAGE, column)
     if cell is not None:
-        return ComparisonRow(number, COMPARED, cell.mean, cell.n)
+        return ComparisonRow(number, COMPARED, cell.mean, cell.n, column=name)
     tasks = [task for domain, task in table.rows if domain == number.domain and task != AVERAGE]
-    have = [task for task in tasks if table.cell(number.domain, task, number.method) is not None]
+    have = [task for task in tasks if table.cell(number.domain, task, column) is not None]
     if have:
-        return ComparisonRow(number, INCOMPLETE, detail=f"{len(have)} of {len(tasks)} tasks")
-    return ComparisonRow(number, NOT_RUN)
+        return ComparisonRow(number, INCOMPLETE, detail=f"{len(have)} of {len(tasks)} tasks", column=name)
+    return ComparisonRow(number, NOT_RUN, column=name)
 
 
 def compare(zeroshot: Table | None, finetune: Table | None, budget: Budget,
@@ -234,13 +249,13 @@ def compare(zeroshot: Table | None, finetune: Table | None, budget: Budget,
     """
     numbers = load_paper_numbers() if numbers is None else list(numbers)
     tables = {"zeroshot": zeroshot, "finetune": finetune}
-    rows = [_row(number, tables[number.kind]) for number in numbers]
+    rows = [row for number in numbers for row in _rows(number, tables[number.kind])]
     comparison = PaperComparison(rows, budget, scale_notes(budget, finetune is not None))
     published = {(n.kind, n.method) for n in numbers}
     for kind, table in tables.items():
         if table is None:
             continue
-        extra = [m for m in table.columns if m != "random" and (kind, m) not in published]
+        extra = [m for m in table.columns if m != "random" and (kind, split_budget_label(m)[0]) not in published]
         if extra:
             comparison.notes.append(f"no published {kind} number for {', '.join(extra)} (the paper tables dvfb "
                                     "ships: docs/reproduce.md)")
@@ -272,7 +287,7 @@ def to_markdown(comparison: PaperComparison, heading_level: int = 2) -> str:
     for row in comparison.rows:
         n = row.number
         status = row.status + (f" ({row.detail})" if row.detail else "")
-        lines.append(f"| {n.table} | {n.domain} | {n.method} | {n.paper_name} | {_number_text(row.report_value)} | "
+        lines.append(f"| {n.table} | {n.domain} | {row.method} | {n.paper_name} | {_number_text(row.report_value)} | "
                      f"{'–' if row.seeds is None else row.seeds} | {n.value:g} | "
                      f"{_number_text(row.difference, signed=True)} | {status} |")
     if len(comparison.notes) > 1:
@@ -289,7 +304,7 @@ def to_csv(comparison: PaperComparison) -> str:
     for row in comparison.rows:
         n = row.number
         status = row.status + (f" ({row.detail})" if row.detail else "")
-        writer.writerow([n.table, n.kind, n.domain, n.method, n.paper_name,
+        writer.writerow([n.table, n.kind, n.domain, row.method, n.paper_name,
                          "" if row.report_value is None else repr(row.report_value),
                          "" if row.seeds is None else row.seeds, repr(n.value),
                          "" if row.difference is None else repr(row.difference), status, n.source])
