@@ -94,3 +94,12 @@ def test_a_goal_for_a_method_without_goal_inference_says_so(runs, capsys, agent,
     if agent == "sf":
         with pytest.raises(ConfigError, match="'sf' has no goal inference"):
             dvfb.load(runs / agent).infer_z(goal=obs)
+
+
+def test_a_device_torch_cannot_use_is_one_line(runs):
+    with pytest.raises(ConfigError, match="device 'tpu' is not one of auto, cpu, cuda"):
+        dvfb.load(runs / "rnd", device="tpu")  # was torch's RuntimeError listing its device types
+    if not torch.cuda.is_available():  # was torch's AssertionError
+        with pytest.raises(ConfigError, match="device 'cuda' was requested but torch sees no CUDA device"):
+            dvfb.load(runs / "rnd", device="cuda")
+    assert dvfb.load(runs / "rnd", device="cpu").model.device == torch.device("cpu")

@@ -24,6 +24,7 @@ import torch
 
 from dvfb.agents import get_spec
 from dvfb.errors import ConfigError
+from dvfb.execution import resolve_device
 from dvfb.runs.export import export_model, is_export, load_export, write_export
 from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run
@@ -39,6 +40,8 @@ class PretrainedModel:
 
     def __init__(self, path: str | Path, snapshot: int | None = None, device: str | None = None):
         self.export = None
+        if isinstance(device, str):  # "cuda" without CUDA, or a typo: one line, not torch's error
+            device = resolve_device(device)
         if is_export(path):
             if snapshot is not None:
                 raise ConfigError(f"{path} is an exported model of one snapshot; load it without snapshot=")
