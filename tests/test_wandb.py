@@ -230,6 +230,24 @@ def test_online_without_credentials_is_one_line_and_creates_nothing(tmp_path, no
     assert not run.exists()
 
 
+def test_online_with_an_unreachable_server_is_one_line_and_creates_nothing(tmp_path, no_network_wandb, capsys,
+                                                                           monkeypatch):
+    import socket
+
+    with socket.socket() as sock:  # a loopback port nothing listens on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    monkeypatch.setenv("WANDB_API_KEY", "0" * 40)
+    monkeypatch.setenv("WANDB_BASE_URL", f"http://127.0.0.1:{port}")
+    monkeypatch.setenv("WANDB_INIT_TIMEOUT", "20")  # bounds the wait where the check is missing
+    run = tmp_path / "run"
+    assert main(["pretrain", *TINY, "--frames", "1000", "--run-dir", str(run), "--log.wandb", "true",
+                 "--log.wandb-mode", "online"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the W&B server 127.0.0.1 cannot be reached" in err[0], err
+    assert not run.exists()  # it was left with config.json, meta.json, wandb_id.txt and wandb/
+
+
 def test_configs_written_before_the_log_section_load_with_it_off():
     old = Path(__file__).parent / "fixtures" / "v0.1.0" / "dvfb_maze"  # written by dvfb 0.1.0
     tuned = old / "finetune" / MAZE / "config.json"

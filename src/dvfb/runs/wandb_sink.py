@@ -70,6 +70,11 @@ def require_wandb(log: LogConfig) -> None:
     if log.wandb_mode == "online" and not _has_credentials():
         raise ConfigError("--log.wandb-mode online needs W&B credentials (WANDB_API_KEY or `wandb login`); "
                           "pass --log.wandb-mode offline to log locally and `wandb sync` later")
+    # An unreachable server would fail wandb.init only after the run directory exists (and after
+    # W&B's own timeout): refused here, before anything is created.
+    if log.wandb_mode == "online" and not _reachable():
+        raise ConfigError(f"--log.wandb-mode online: the W&B server {_host()} cannot be reached; pass "
+                          "--log.wandb-mode offline to log locally and `wandb sync` later")
 
 
 def _host() -> str:
