@@ -12,12 +12,14 @@ install: $(STAMP)
 
 # torch is installed first and exactly, so that no looser spec pulls CUDA wheels. The development
 # install includes the optional Meta-World extra, so that the tests cover the faucet tasks, and
-# the stats extra, so that they compare the report's aggregates with rliable's, and the wandb extra,
-# so that they read back what a run logs to Weights & Biases offline.
-$(STAMP): pyproject.toml
+# the stats extra, so that they compare the report's aggregates with rliable's, the wandb extra,
+# so that they read back what a run logs to Weights & Biases offline, and the hub extra, so that
+# they check what `dvfb push` refuses and says against a stand-in hub on a loopback port. The
+# stamp follows this file too: an extra added here is installed into an existing .venv.
+$(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev,metaworld,stats,wandb]'
+	$(PY) -m pip install --quiet -e '.[dev,metaworld,stats,wandb,hub]'
 	touch $(STAMP)
 
 # The GIF of the demo renders with OpenGL: gl-deps installs software OpenGL when it is missing.

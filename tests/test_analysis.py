@@ -246,18 +246,39 @@ def test_finetune_table_and_curves(tmp_path: Path):
         assert f"curves/{name}" in text
 
 
-def test_numbers_from_different_pretraining_budgets_in_one_cell_are_noted(tmp_path: Path):
+def test_numbers_from_different_pretraining_budgets_are_different_cells(tmp_path: Path):
     root = tmp_path / "runs"
-    make_pretrain_run(root / "dvfb_s0", seed=0, zeroshot={"walker_walk": 300.0})
-    make_pretrain_run(root / "dvfb_s1", seed=1, zeroshot={"walker_walk": 500.0}, snapshot_frames=200_000)
+    make_pretrain_run(root / "dvfb_s0", seed=0, zeroshot={"walker_walk": 300.0}, snapshot_frames=1_200)
+    make_pretrain_run(root / "dvfb_s1", seed=1, zeroshot={"walker_walk": 500.0})
+    make_pretrain_run(root / "dvfb_s0_long", seed=0, zeroshot={"walker_walk": 700.0})  # seed 0 at both budgets
     make_pretrain_run(root / "fb_s0", agent="fb", seed=0, zeroshot={"walker_walk": 100.0})
     make_pretrain_run(root / "fb_s1", agent="fb", seed=1, zeroshot={"walker_walk": 200.0})
-    report = make_report([root], tmp_path / "out")
+    for run in ("dvfb_s0", "dvfb_s1", "dvfb_s0_long"):
+        make_finetune_run(root / run, "walker_walk", [(0, 10), (10_000, 40 if run == "dvfb_s0" else 60)])
+    (root / "dvfb_s0" / "finetune" / "walker_walk" / "config.json").write_text(
+        (root / "dvfb_s0" / "finetune" / "walker_walk" / "config.json").read_text().replace('"snapshot": 100000',
+                                                                                            '"snapshot": 1200'))
+    out = tmp_path / "out"
+    report = make_report([root], out)
+    short, long = "dvfb (1,200 frames)", "dvfb (100,000 frames)"
+    table = report.zeroshot
+    assert table.columns == [short, long, "fb"]  # one method's budgets side by side, the smaller first
+    assert table.cell("walker", "walker_walk", short).mean == 300.0 and table.cell("walker", "walker_walk", short).n == 1
+    assert table.cell("walker", "walker_walk", long).mean == 600.0 and table.cell("walker", "walker_walk", long).n == 2
+    assert table.cell("walker", "walker_walk", "fb").mean == 150.0  # one budget: its plain name
+    assert md_columns((out / "table1_zeroshot.md").read_text().split("### ")[0]) == [short, long, "fb"]
+    assert report.finetune.columns == [short, long]
+    assert report.finetune.cell("walker", "walker_walk", short).mean == 40.0
+    assert report.finetune.cell("walker", "walker_walk", long).mean == 60.0
+    assert {m for kind in report.aggregates.values() for scope in kind.scopes for m in scope.matrices} >= {short, long}
     notes = [n for n in report.notes if "pre-training budgets" in n]
-    assert notes == ["Table 1: dvfb on walker averages runs of different pre-training budgets (1 number(s) from the "
-                     "snapshot at 100000 frames, 1 number(s) from the snapshot at 200000 frames); evaluate one "
-                     "snapshot (--snapshot) to compare like with like"]
-    assert notes[0] in (tmp_path / "out" / "report.md").read_text()
+    assert notes == [f"Table 1: dvfb on walker has runs of different pre-training budgets, each budget its own column "
+                     f"({short}: 1 number(s), {long}: 2 number(s)); evaluate one snapshot (--snapshot) to compare "
+                     "like with like",
+                     f"Table 2: dvfb on walker has runs of different pre-training budgets, each budget its own column "
+                     f"({short}: 1 number(s), {long}: 2 number(s)); evaluate one snapshot (--snapshot) to compare "
+                     "like with like"]
+    assert all(note in (out / "report.md").read_text() for note in notes)
 
 
 def test_finetune_run_given_alone_takes_the_method_from_its_pretraining_run(tmp_path: Path):

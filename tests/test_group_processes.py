@@ -185,3 +185,45 @@ def test_children_of_a_killed_command_checkpoint_and_stop(tmp_path):
         written = {p.name: p.stat().st_mtime for p in (path / "checkpoints").glob("resume_*.pt")}
         assert any(t >= killed for t in written.values()), (path, written, killed)
         assert not (path / "pretrain_summary.json").exists()
+
+
+def _holds_a_file_in(pid: int, path: Path) -> bool:
+    """Whether process ``pid`` has a file under ``path`` open (a share's metrics logs)."""
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            if str(path) in os.readlink(fd):
+                return True
+        except OSError:  # closed meanwhile
+            continue
+    return False
+
+
+@pytest.mark.slow
+def test_a_killed_share_stops_the_group_in_one_line_and_the_group_resumes_exactly(tmp_path):
+    template = str(tmp_path / "cut_s{seed}")
+    cut = [tmp_path / f"cut_s{s}" for s in (0, 1)]
+    frames = ["--frames", "4000", "--checkpoint-every", "1000"]
+    proc = _started_split(template, cut, frames)
+    children = [pid for pid in _children(proc.pid) if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text()]
+    (victim,) = [pid for pid in children if _holds_a_file_in(pid, cut[1])]
+    deadline = time.monotonic() + 300
+    while not list((cut[1] / "checkpoints").glob("resume_*.pt")):  # it has something to resume from
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.05)
+    os.kill(victim, signal.SIGKILL)  # what the out-of-memory killer sends: no checkpoint, no word
+    _out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGKILL, err
+    lines = err.strip().splitlines()
+    last = lines[-1]
+    assert "Traceback" not in err and last.startswith("dvfb pretrain: seeds 1: its process was killed by SIGKILL"), err
+    assert "seeds 0: SIGTERM received" in last and "--resume" in last
+    # The other share stopped at once with a checkpoint, long before its end; nothing finished.
+    assert not any((path / "pretrain_summary.json").exists() for path in cut)
+    assert list((cut[0] / "checkpoints").glob("resume_*.pt"))
+    resumed = _cli("--seeds", "0,1", "--run-dir", template, "--processes", "2", *frames, "--resume")
+    _out, err = resumed.communicate(timeout=600)
+    assert resumed.returncode == 0, err
+    whole = _cli("--seeds", "0,1", "--run-dir", str(tmp_path / "whole_s{seed}"), "--processes", "2", *frames)
+    _out, err = whole.communicate(timeout=600)
+    assert whole.returncode == 0, err
+    _assert_same_snapshots(cut, [tmp_path / f"whole_s{s}" for s in (0, 1)], 4000)

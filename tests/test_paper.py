@@ -338,6 +338,26 @@ def test_compare_table_is_the_per_task_comparison_of_any_table():
     assert paper.compare_table(None, "finetune")[0].status in ("not run", "paper only")
 
 
+def test_each_pretraining_budget_of_a_method_is_its_own_comparison_row(tmp_path: Path):
+    root = tmp_path / "runs"
+    make_pretrain_run(root / "fb_short", agent="fb", seed=0, snapshot_frames=1_200,
+                      zeroshot=dict(zip(WALKER, (10, 20, 30, 40))))
+    make_pretrain_run(root / "fb_long", agent="fb", seed=0, zeroshot=dict(zip(WALKER, (100, 200, 300, 400))))
+    out = tmp_path / "report"
+    make_report([root], out, paper=True)
+    rows = comparison_rows(out / "paper_comparison.csv")
+    assert ("1", "walker", "average", "FB", "fb") not in rows  # no row averages the two budgets
+    short = rows[("1", "walker", "average", "FB", "fb (1,200 frames)")]
+    long = rows[("1", "walker", "average", "FB", "fb (100,000 frames)")]
+    assert float(short["report_value"]) == pytest.approx(25.0) and float(long["report_value"]) == pytest.approx(250.0)
+    assert short["status"] == long["status"] == "compared" and short["paper_value"] == long["paper_value"]
+    assert rows[("1", "walker", "stand", "FB", "fb (1,200 frames)")]["runs_vs_paper"].startswith("1.2k of 2M")
+    markdown = (out / "paper_comparison.md").read_text()
+    assert "| walker_stand | fb (1,200 frames) | FB | 10.0 (1) |" in markdown
+    assert "no cell of the paper for the zeroshot" not in markdown  # the budgets' columns are fb's
+    assert "pre-training of 1,200, 100,000 frames" in markdown  # the scale note names both budgets
+
+
 def test_report_paper_at_the_papers_scale_says_so(tmp_path: Path):
     run = make_pretrain_run(tmp_path / "runs" / "fb_s0", agent="fb", snapshot_frames=2_000_000,
                             zeroshot=dict(zip(WALKER, (100, 120, 140, 160))))

@@ -4,6 +4,7 @@ model the run itself gives."""
 
 from __future__ import annotations
 
+import os
 import pickle
 import shutil
 import subprocess
@@ -162,3 +163,151 @@ def test_a_read_only_disk_is_one_line_and_leaves_nothing(run, small_disk, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "Read-only file system" in err[0], err
     assert list(small_disk.iterdir()) == []
+
+
+def _fill(disk: Path, leave: int) -> None:
+    """A real file taking all but about ``leave`` bytes of the disk's free space."""
+    import os
+
+    stats = os.statvfs(disk)
+    with open(disk / "filler", "wb") as file:
+        file.write(b"\0" * max(0, stats.f_bavail * stats.f_frsize - leave))
+
+
+def test_a_full_disk_is_one_line_and_keeps_the_export_it_would_replace(run, small_disk, capsys):
+    def fails(argv):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "No space left on device" in err[0] and "Traceback" not in err[0], err
+
+    first = small_disk / "model"
+    assert main(["export", str(run), "--out", str(first)]) == 0
+    capsys.readouterr()
+    before = {p.name: p.read_bytes() for p in first.iterdir()}
+    _fill(small_disk, 16 * 1024)  # room for the probe and the card, not for the weights
+    fails(["export", str(run), "--out", str(small_disk / "new" / "model")])  # safetensors' own write error
+    assert sorted(p.name for p in small_disk.iterdir()) == ["filler", "model"]  # the parents it made are gone
+    fails(["export", str(run), "--out", str(first), "--overwrite", "--with-inference-data"])
+    assert {p.name: p.read_bytes() for p in first.iterdir()} == before  # the model it would replace, intact
+    assert dvfb.load(first).snapshot == 2000
+
+
+def _damaged(out: Path, tmp_path: Path, name: str, damage) -> Path:
+    copy = tmp_path / name
+    shutil.copytree(out, copy)
+    damage(copy)
+    return copy
+
+
+def _edit_config(change):
+    def damage(path: Path) -> None:
+        import json
+
+        info = json.loads((path / "config.json").read_text())
+        change(info)
+        (path / "config.json").write_text(json.dumps(info))
+    return damage
+
+
+def test_a_damaged_export_is_a_dvfb_error_naming_the_file(run, tmp_path):
+    from dvfb.errors import DvfbError
+
+    out = tmp_path / "export"
+    assert main(["export", str(run), "--out", str(out), "--with-inference-data"]) == 0
+    size = (out / "inference_data.npz").stat().st_size
+    cases = [
+        ("no_space", _edit_config(lambda info: info.pop("observation_space")), "config.json", "observation_space"),
+        ("bad_shape", _edit_config(lambda info: info.update(action_space={"shape": []})), "config.json",
+         "action_space"),
+        ("no_frames", _edit_config(lambda info: info.pop("frames")), "config.json", "'frames'"),
+        ("no_agent", _edit_config(lambda info: info["run_config"].update(agent="nope")), "config.json",
+         "unknown agent 'nope'"),
+        ("other_width", _edit_config(lambda info: info["run_config"]["fb"].update(hidden_dim=64)),
+         "model.safetensors", "does not fit 'fb''s networks"),
+        ("truncated", lambda p: os.truncate(p / "inference_data.npz", size // 2), "inference_data.npz",
+         "cannot be read"),
+        ("no_obs", lambda p: np.savez(p / "inference_data.npz", next_obs=np.zeros((3, 4), np.float32)),
+         "inference_data.npz", "'obs' is missing"),
+        ("narrow", lambda p: np.savez(p / "inference_data.npz", obs=np.zeros((3, 2), np.float32),
+                                      next_obs=np.zeros((3, 2), np.float32)), "inference_data.npz", "(N, 4)"),
+    ]
+    for name, damage, file, message in cases:
+        copy = _damaged(out, tmp_path, name, damage)
+        with pytest.raises(DvfbError) as failure:
+            dvfb.load(copy)
+        text = str(failure.value)
+        assert str(copy / file) in text and message in text and "\n" not in text, (name, text)
+
+
+class _Hub:
+    """A stand-in hub on a loopback port that answers every request 401 and counts them."""
+
+    def __init__(self):
+        import http.server
+        import threading
+
+        hub = self
+        self.requests = 0
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def _answer(self):
+                hub.requests += 1
+                body = b'{"error": "Invalid credentials in Authorization header"}'
+                self.send_response(401)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            do_GET = do_POST = do_PUT = do_HEAD = _answer
+
+            def log_message(self, *args):
+                pass
+
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def close(self):
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def _closed_port() -> int:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def test_push_refuses_without_credentials_before_the_network_and_network_errors_are_one_line(run, tmp_path):
+    out = dvfb.load(run).save_pretrained(tmp_path / "export")
+    hub = _Hub()
+    base = {k: v for k, v in os.environ.items() if not k.startswith(("HF_", "HUGGING_FACE"))}
+    base.update(HF_HOME=str(tmp_path / "hf_home"), HF_HUB_DISABLE_TELEMETRY="1")
+
+    def push(env, repo="org/name"):
+        done = subprocess.run([sys.executable, "-m", "dvfb", "push", str(out), "--repo", repo], capture_output=True,
+                              text=True, env=env, timeout=120)
+        assert done.returncode == 2, done.stderr
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("dvfb push: error: "), done.stderr
+        return lines[0]
+
+    try:
+        assert "needs Hugging Face credentials" in push({**base, "HF_ENDPOINT": hub.url})
+        assert "--repo 'a b' is not a hub repository name" in push({**base, "HF_TOKEN": "hf_x", "HF_ENDPOINT": hub.url},
+                                                                  "a b")
+        assert hub.requests == 0  # refused before the first request
+        line = push({**base, "HF_TOKEN": "hf_x", "HF_ENDPOINT": hub.url})
+        assert hub.requests > 0 and f"cannot push {out} to org/name:" in line and "401" in line, line
+        line = push({**base, "HF_TOKEN": "hf_x", "HF_ENDPOINT": f"http://127.0.0.1:{_closed_port()}"})
+        assert f"cannot push {out} to org/name:" in line, line
+    finally:
+        hub.close()
+    # The token file (`hf auth login`) counts as credentials: the push goes on to the network.
+    (tmp_path / "hf_home").mkdir()
+    (tmp_path / "hf_home" / "token").write_text("hf_x")
+    line = push({**base, "HF_ENDPOINT": f"http://127.0.0.1:{_closed_port()}"})
+    assert f"cannot push {out} to org/name:" in line, line

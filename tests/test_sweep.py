@@ -148,6 +148,25 @@ def test_sweep_files_of_the_wrong_shape_are_one_line(tmp_path, capsys, body, mes
     assert not sweep_dir.exists()
 
 
+@pytest.mark.parametrize("body, message", [
+    ('[overrides.fb]\nlr = "fast"', "lr: expected float, got 'fast'"),
+    ('[overrides]\n"fb.lr" = "1e-4"', "lr: expected float, got '1e-4'"),
+    ("[overrides]\nfb.lr = true", "lr: expected float, got True"),
+])
+def test_a_float_option_given_as_text_is_refused_by_the_dry_run_and_the_run(tmp_path, capsys, body, message):
+    """It passed every check, and the sweep directory was made, before its pre-training refused it
+    (exit 1, nothing on the sweep's stderr)."""
+    sweep_file = tmp_path / "sweep.toml"
+    sweep_file.write_text('agents = ["fb"]\ndomains = ["point_mass_maze"]\nseeds = [0]\nphases = ["pretrain"]\n'
+                          + body + "\n")
+    sweep_dir = tmp_path / "sweep"
+    for dry_run in (["--dry-run"], []):  # the dry run first: it starts nothing even where the check is missing
+        assert main(["sweep", "run", str(sweep_file), "--dir", str(sweep_dir), "--executor", "debug", *dry_run]) == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) == 1, err
+        assert not sweep_dir.exists()
+
+
 def test_a_nested_table_of_overrides_is_its_dotted_options():
     from dvfb.sweep.spec import SweepConfig, normalise_overrides
 

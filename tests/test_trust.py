@@ -516,6 +516,33 @@ def test_a_seed_outside_0_to_2_32_is_one_line_exit_2(finished_run, command, seed
     assert "--seed" in err[-1] and "from 0 to 4294967295" in err[-1]
 
 
+ARGPARSE_ONE_LINE = [
+    (["pretrain", "--agent", "fb", *MAZE, "--processes", "two"], "argument --processes: invalid int value: 'two'"),
+    (["export", "RUN", "--out", "OUT", "--inference-size", "0"], "argument --inference-size: invalid integer >= 1"),
+    (["pretrain", "--agent", "fb", *MAZE, "--fbee.uncertainty", "f"],
+     "--fbee.uncertainty is an option of fbee, dvfb_fbee, not of --agent fb"),
+    (["pretrain", "--agent", "fb", *MAZE, "--fbee.uncertainty=f"], "--fbee.uncertainty is an option of fbee"),
+    (["pretrain", "--agent", "fb", *MAZE, "--no-such-flag", "1"], "unrecognized arguments: --no-such-flag 1"),
+    (["zeroshot", "RUN", "--task", "point_mass_maze_reach_top_left", "--seed", "x"], "argument --seed: invalid seed"),
+    (["report", "RUN"], "the following arguments are required: --out"),
+]
+
+
+@pytest.mark.parametrize("argv,message", ARGPARSE_ONE_LINE, ids=[" ".join(a[-2:]) for a, _ in ARGPARSE_ONE_LINE])
+def test_argparse_errors_are_one_line_naming_the_flag_and_create_nothing(finished_run, tmp_path, argv, message,
+                                                                       capsys):
+    out = tmp_path / "out"
+    argv = [str(finished_run) if a == "RUN" else str(out) if a == "OUT" else a for a in argv]
+    before = sorted(p.relative_to(finished_run) for p in finished_run.rglob("*"))
+    with pytest.raises(SystemExit) as exc:
+        main([*argv, "--run-dir", str(out)] if argv[0] == "pretrain" else argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0] and err[0].startswith(f"dvfb {argv[0]}: error: "), err
+    assert "--help" in err[0]  # where the options are listed, instead of argparse's usage
+    assert not out.exists() and sorted(p.relative_to(finished_run) for p in finished_run.rglob("*")) == before
+
+
 def test_seeds_and_integer_options_out_of_range_are_one_line_exit_2_with_nothing_created(finished_run, tmp_path,
                                                                                          capsys):
     """Every seed (flags, config fields, sweep grids) and every integer reaches numpy and torch

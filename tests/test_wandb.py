@@ -179,6 +179,24 @@ def test_a_resume_may_turn_wandb_on_or_off(tmp_path, no_network_wandb):
     assert load_run_config(run / "config.json").log.wandb is True
 
 
+def test_a_resume_refused_for_a_damaged_wandb_id_changes_no_file(tmp_path, no_network_wandb, capsys):
+    run = tmp_path / "maze_fb"
+    assert main(["pretrain", *TINY, "--frames", "1000", "--run-dir", str(run), *WANDB]) == 0
+    (run / "wandb_id.txt").write_text("not an id!\n")
+    capsys.readouterr()
+    before = {str(p.relative_to(run)): p.read_bytes() if p.is_file() and p.name != ".lock" else None
+              for p in sorted(run.rglob("*"))}
+    assert main(["pretrain", *TINY, "--frames", "1500", "--run-dir", str(run), *WANDB, "--resume"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    # The memory estimate may come first; the refusal is one line, and nothing was resumed.
+    assert "wandb_id.txt does not hold a W&B run id" in err[-1] and not any("resuming" in e for e in err), err
+    assert err[-1].startswith("dvfb pretrain: error: ") and len(err) <= 2, err
+    after = {str(p.relative_to(run)): p.read_bytes() if p.is_file() and p.name != ".lock" else None
+             for p in sorted(run.rglob("*"))}
+    assert after == before  # config.json still says 1,000 frames; the metrics keep their records
+    assert load_run_config(run / "config.json").frames == 1000
+
+
 def run_cli(args: list[str], env: dict, preamble: str = "") -> subprocess.CompletedProcess:
     code = f"import sys; {preamble}from dvfb.cli import main; sys.exit(main(sys.argv[1:]))"
     return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env,
@@ -210,6 +228,24 @@ def test_online_without_credentials_is_one_line_and_creates_nothing(tmp_path, no
     assert main(["pretrain", *TINY, "--frames", "1000", "--run-dir", str(run), "--log.wandb-mode", "sometimes"]) == 2
     assert "--log.wandb-mode 'sometimes' is not one of auto, online, offline" in capsys.readouterr().err
     assert not run.exists()
+
+
+def test_online_with_an_unreachable_server_is_one_line_and_creates_nothing(tmp_path, no_network_wandb, capsys,
+                                                                           monkeypatch):
+    import socket
+
+    with socket.socket() as sock:  # a loopback port nothing listens on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    monkeypatch.setenv("WANDB_API_KEY", "0" * 40)
+    monkeypatch.setenv("WANDB_BASE_URL", f"http://127.0.0.1:{port}")
+    monkeypatch.setenv("WANDB_INIT_TIMEOUT", "20")  # bounds the wait where the check is missing
+    run = tmp_path / "run"
+    assert main(["pretrain", *TINY, "--frames", "1000", "--run-dir", str(run), "--log.wandb", "true",
+                 "--log.wandb-mode", "online"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the W&B server 127.0.0.1 cannot be reached" in err[0], err
+    assert not run.exists()  # it was left with config.json, meta.json, wandb_id.txt and wandb/
 
 
 def test_configs_written_before_the_log_section_load_with_it_off():

@@ -15,6 +15,7 @@ networks for acting and inference, no optimiser) and uses the zero-shot machiner
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Callable
 
@@ -23,6 +24,7 @@ import torch
 
 from dvfb.agents import get_spec
 from dvfb.errors import ConfigError
+from dvfb.execution import resolve_device
 from dvfb.runs.export import export_model, is_export, load_export, write_export
 from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run
@@ -38,6 +40,8 @@ class PretrainedModel:
 
     def __init__(self, path: str | Path, snapshot: int | None = None, device: str | None = None):
         self.export = None
+        if isinstance(device, str):  # "cuda" without CUDA, or a typo: one line, not torch's error
+            device = resolve_device(device)
         if is_export(path):
             if snapshot is not None:
                 raise ConfigError(f"{path} is an exported model of one snapshot; load it without snapshot=")
@@ -54,6 +58,14 @@ class PretrainedModel:
     def name(self) -> str:
         return self.config.agent
 
+    @property
+    def agent(self):
+        """The old name of :attr:`model`, kept for one release with a DeprecationWarning (CHANGELOG.md):
+        what ``dvfb.load`` gives has held the model, not a learner, since the model/learner split."""
+        warnings.warn("dvfb.load(...).agent is deprecated and will be removed; use .model (the same object)",
+                      DeprecationWarning, stacklevel=2)
+        return self.model
+
     def infer_z(self, obs=None, next_obs=None, rewards=None, *, reward_fn: Callable | None = None,
                 goal=None, **inference) -> torch.Tensor:
         """The skill of a task, from exactly one of:
@@ -69,8 +81,7 @@ class PretrainedModel:
             raise ConfigError("infer_z needs exactly one of (obs, next_obs, rewards), reward_fn= or goal=")
         if not self.model.skill.has_skill:
             raise ConfigError(f"{self.name!r} has a single policy and no skill to infer; call policy() without z")
-        protocol = run_protocol(self.config, inference)
-        protocol.check_source("goal" if goal is not None else "reward_fn", self.name)
+        protocol = run_protocol(self.config, inference, "goal" if goal is not None else "reward_fn")
         device = self.model.device
         if goal is not None:
             check_goal(goal, self.model.goal_widths(), self.config.domain, "goal")
@@ -142,3 +153,12 @@ def load(path: str | Path, snapshot: int | None = None, device: str | None = Non
     """Load a pre-trained model from a run directory (its newest snapshot, or ``snapshot``) or from
     an exported model's directory (see :class:`PretrainedModel`)."""
     return PretrainedModel(path, snapshot, device)
+
+
+def __getattr__(name: str):
+    # The class's old name, kept for one release with a DeprecationWarning (CHANGELOG.md).
+    if name == "PretrainedAgent":
+        warnings.warn("dvfb.api.PretrainedAgent is deprecated and will be removed; use dvfb.api.PretrainedModel",
+                      DeprecationWarning, stacklevel=2)
+        return PretrainedModel
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -149,7 +149,9 @@ def _coerce(name: str, tp: Any, value: Any) -> Any:
         return float(value)
     if tp is int and isinstance(value, bool):
         raise ConfigError(f"{name}: expected an int, got {value!r}")
-    if tp in (int, str, bool) and not isinstance(value, tp):
+    # A float from text ("fast", or "1e-4" from a sweep file) would pass every range check and fail
+    # only when the run starts: refused here as the other scalar types are.
+    if tp in (int, float, str, bool) and not isinstance(value, tp):
         raise ConfigError(f"{name}: expected {tp.__name__}, got {value!r}")
     return value
 

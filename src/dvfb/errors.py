@@ -26,6 +26,11 @@ class NonFiniteLossError(DvfbError, FloatingPointError):
     """A loss became NaN or inf; training stops and keeps the last good checkpoint."""
 
 
+class RemoteError(DvfbError):
+    """A remote service (the Hugging Face hub of ``dvfb push``) could not be reached or refused a
+    request: a network error is one line, as any other, never a traceback."""
+
+
 class RunInterrupted(DvfbError):
     """SIGTERM or SIGINT stopped a run after its current step; a checkpoint to resume from was
     written. The CLI exits with status 128 + the signal number, as a shell reports a signal."""

@@ -213,7 +213,10 @@ DEVICES = ("auto", "cpu", "cuda")
 
 
 def resolve_device(device: str) -> torch.device:
-    """A run's ``--device``: ``auto`` picks CUDA when torch sees it."""
+    """A run's ``--device``: ``auto`` picks CUDA when torch sees it; anything but :data:`DEVICES` is
+    refused in one line (the Python API passes what its caller typed)."""
+    if device not in DEVICES:
+        raise ConfigError(f"device {device!r} is not one of {', '.join(DEVICES)}")
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if device == "cuda" and not torch.cuda.is_available():

@@ -16,9 +16,10 @@ import functools
 import logging
 import math
 import os
+import re
 from collections import Counter
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -120,19 +121,38 @@ def _labelled_by_registry(spec: Any, run_config: Any, finetune: Any, section: st
 
 def method_sort_key(name: str) -> tuple:
     """Column order of the tables: registered methods by their ``column`` (then registry order),
-    each followed by its variants, then unknown names, random last."""
+    each followed by its variants, then unknown names, random last; the budgets of one method
+    (:func:`budget_label`) side by side, the smaller first."""
 
     if name == "random":
-        return (3, 0, 0, 0, name)
+        return (3, 0, 0, 0, name, 0)
+    base, frames = split_budget_label(name)
     names = list(AGENTS)
     # The longest registered name the label starts with: "dvfb_wo_ce" belongs to "dvfb", the
     # paper's "SF-Lap" to "sf"; an offline run's "@dataset" does not count.
-    key = name.split("@", 1)[0].lower().replace("-", "_")
+    key = base.split("@", 1)[0].lower().replace("-", "_")
     owners = [n for n in names if key == n or key.startswith(n + "_") or key.replace("_", "") == n]
     if owners:
         owner = max(owners, key=len)
-        return (0, AGENTS[owner].column, names.index(owner), len(name), name)
-    return (2, 0, 0, 0, name)
+        return (0, AGENTS[owner].column, names.index(owner), len(base), base, frames or 0)
+    return (2, 0, 0, 0, base, frames or 0)
+
+
+_BUDGET = re.compile(r"^(?P<method>.+) \((?P<frames>[0-9,]+) frames\)$")
+
+
+def budget_label(method: str, frames: int) -> str:
+    """The column of ``method``'s numbers from the pre-training snapshot at ``frames`` frames, where a
+    table has the method at several budgets (:func:`split_budgets`): ``fb (100,000 frames)``."""
+    return f"{method} ({frames:,} frames)"
+
+
+def split_budget_label(label: str) -> tuple[str, int | None]:
+    """The method and the budget of a :func:`budget_label` (the label itself and None otherwise)."""
+    match = _BUDGET.match(label)
+    if match is None:
+        return label, None
+    return match["method"], int(match["frames"].replace(",", ""))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -300,17 +320,33 @@ def finetune_scores(runs: Iterable[FinetuneRun], metric: str = RETURN) -> list[S
     return scores
 
 
-def mixed_pretraining_notes(scores: Iterable[Score], table: str) -> list[str]:
-    """One note per method and domain whose numbers in ``table`` come from pre-training snapshots
-    of different frames (a cell would average budgets that the paper keeps apart)."""
+def _budgets(scores: Iterable[Score]) -> dict[tuple[str, str], Counter]:
+    """The numbers of each (method, domain) by the frames of the pre-training snapshot behind them."""
     budgets: dict[tuple[str, str], Counter] = {}
     for score in scores:
         if score.pretrain_frames is not None:
             budgets.setdefault((score.method, score.domain), Counter())[score.pretrain_frames] += 1
-    return [f"{table}: {method} on {domain} averages runs of different pre-training budgets ("
-            + ", ".join(f"{n} number(s) from the snapshot at {f} frames" for f, n in sorted(counts.items()))
+    return budgets
+
+
+def split_budgets(scores: Sequence[Score]) -> list[Score]:
+    """``scores`` with the method of each number relabelled by its pre-training budget
+    (:func:`budget_label`) where one method has numbers of several budgets on one domain: a table
+    cell never averages a 1,200-frame and a 100,000-frame pre-training (the paper keeps budgets
+    apart). Where a method has one budget its label is unchanged."""
+    mixed = {key for key, counts in _budgets(scores).items() if len(counts) > 1}
+    return [replace(s, method=budget_label(s.method, s.pretrain_frames))
+            if (s.method, s.domain) in mixed else s for s in scores]
+
+
+def mixed_pretraining_notes(scores: Iterable[Score], table: str) -> list[str]:
+    """One note per method and domain whose numbers in ``table`` (``scores`` before
+    :func:`split_budgets`) come from pre-training snapshots of different frames: the columns they
+    are in."""
+    return [f"{table}: {method} on {domain} has runs of different pre-training budgets, each budget its own column ("
+            + ", ".join(f"{budget_label(method, f)}: {n} number(s)" for f, n in sorted(counts.items()))
             + "); evaluate one snapshot (--snapshot) to compare like with like"
-            for (method, domain), counts in sorted(budgets.items()) if len(counts) > 1]
+            for (method, domain), counts in sorted(_budgets(scores).items()) if len(counts) > 1]
 
 
 def random_scores(files: Iterable[str | os.PathLike], metric: str = RETURN) -> list[Score]:

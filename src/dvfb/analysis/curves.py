@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,8 +34,10 @@ class CurveBand:
     high: np.ndarray | None = None
 
 
-def load_curves(runs: Sequence[FinetuneRun]) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
-    """``{task: {method: [(frames, mean_return), ...one per run]}}`` from the runs' curve.json."""
+def load_curves(runs: Sequence[FinetuneRun], labels: Mapping[Path, str] | None = None
+                ) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
+    """``{task: {method: [(frames, mean_return), ...one per run]}}`` from the runs' curve.json; a run
+    whose curve file ``labels`` names is under that method (its table column, e.g. its budget's)."""
     curves: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
     for run in runs:
         curve = run.run.curve(AnalysisError)  # the points' frames and returns are checked there
@@ -45,22 +47,27 @@ def load_curves(runs: Sequence[FinetuneRun]) -> dict[str, dict[str, list[tuple[n
             raise AnalysisError(f"{run.run.curve_path}: 'curve' is missing or empty")
         frames = np.array([float(p["frames"]) for p in curve.curve])
         returns = np.array([float(p["mean_return"]) for p in curve.curve])
-        curves[run.config.task][run.method].append((frames, returns))
+        curves[run.config.task][_label(run, labels)].append((frames, returns))
     return curves
 
 
-def load_episode_curves(runs: Sequence[FinetuneRun]) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
+def load_episode_curves(runs: Sequence[FinetuneRun], labels: Mapping[Path, str] | None = None
+                        ) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
     """``{task: {method: [(episode, return), ...one per run]}}``: the return of every training
     episode of the protocols that record them (test-time search, online task inference), against
-    the number of episodes of interaction (1, 2, ...)."""
+    the number of episodes of interaction (1, 2, ...); ``labels`` as :func:`load_curves`'."""
     curves: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
     for run in runs:
         curve = run.run.curve(AnalysisError)
         if curve is None or not curve.episodes:
             continue
         returns = np.array([float(e["return"]) for e in curve.episodes])
-        curves[run.config.task][run.method].append((np.arange(1, len(returns) + 1, dtype=float), returns))
+        curves[run.config.task][_label(run, labels)].append((np.arange(1, len(returns) + 1, dtype=float), returns))
     return curves
+
+
+def _label(run: FinetuneRun, labels: Mapping[Path, str] | None) -> str:
+    return (labels or {}).get(run.run.curve_path, run.method)
 
 
 def aggregate(curves: Sequence[tuple[np.ndarray, np.ndarray]], spread: str = "std",

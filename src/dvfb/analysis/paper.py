@@ -51,7 +51,7 @@ from dataclasses import dataclass, field
 from importlib import resources
 
 from dvfb.agents import AGENTS
-from dvfb.analysis.common import RETURN, SUCCESS, AnalysisError, Runs, Score, method_name
+from dvfb.analysis.common import RETURN, SUCCESS, AnalysisError, Runs, Score, method_name, split_budget_label
 from dvfb.analysis.tables import AVERAGE, Cell, Table
 from dvfb.config import canonical_key, field_type, merge, parse_text
 from dvfb.errors import DvfbError
@@ -448,11 +448,12 @@ def _all_domains(cell: PaperCell, cells: Sequence[PaperCell]) -> list[str]:
 
 def _columns(method: PaperMethod, presets: Sequence[str], domain: str, kind: str, table: Table) -> list[str]:
     """The columns of ``table`` that a run of the method's flags makes under one of ``presets`` and
-    that have a value on ``domain``."""
+    that have a value on ``domain``: the method's column, or each of its pre-training budgets' columns
+    where the report keeps them apart (``fb (1,200 frames)``, docs/reports.md)."""
     labels = dict.fromkeys(label for preset in presets if (label := method.label(preset, domain, kind)) is not None)
     tasks = [task for d, task in table.rows if d == domain]
-    return [label for label in labels if label in table.columns
-            and any(table.cell(domain, task, label) is not None for task in tasks)]
+    return [column for column in table.columns if split_budget_label(column)[0] in labels
+            and any(table.cell(domain, task, column) is not None for task in tasks)]
 
 
 def _domain_average(table: Table, domain: str, label: str) -> tuple[Cell | None, str]:

@@ -44,6 +44,7 @@ from dvfb.analysis.common import (
     finetune_scores,
     mixed_pretraining_notes,
     random_scores,
+    split_budgets,
     zeroshot_scores,
 )
 from dvfb.analysis.curves import load_curves, load_episode_curves, plot_curves
@@ -105,19 +106,23 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
     if bootstrap.samples < 100 or not 0 < bootstrap.confidence < 1:
         raise AnalysisError("--bootstrap-samples must be at least 100 and --confidence within (0, 1)")
     runs = discover_runs(paths)
-    zs = zeroshot_scores(runs.pretrain)
-    ft = finetune_scores(runs.finetune)
+    # Numbers of one method from different pre-training budgets are different columns.
+    zs_read, ft_read = zeroshot_scores(runs.pretrain), finetune_scores(runs.finetune)
+    zs, ft = split_budgets(zs_read), split_budgets(ft_read)
     rnd = random_scores(random_files)
     check_duplicates([*zs, *ft, *rnd])
-    zs_success, ft_success = zeroshot_scores(runs.pretrain, SUCCESS), finetune_scores(runs.finetune, SUCCESS)
+    zs_success = split_budgets(zeroshot_scores(runs.pretrain, SUCCESS))
+    ft_success = split_budgets(finetune_scores(runs.finetune, SUCCESS))
+    budget_notes = mixed_pretraining_notes(zs_read, "Table 1") + mixed_pretraining_notes(ft_read, "Table 2")
     rnd_success = random_scores(random_files, SUCCESS)
     if not zs and not ft:
         found = f"{len(runs.pretrain)} pre-training run(s)" if runs.pretrain else "no dvfb run"
         raise AnalysisError(f"found {found} and no zero-shot or fine-tuning results under "
                             f"{', '.join(map(str, paths))}; run `dvfb zeroshot` or `dvfb finetune` first")
-    report = Report(out_dir)
-    curves = load_curves(runs.finetune) if ft else {}
-    episodes = load_episode_curves(runs.finetune) if ft else {}
+    report = Report(out_dir, notes=budget_notes)
+    labels = {score.source: score.method for score in ft}  # a curve's method: its score's column
+    curves = load_curves(runs.finetune, labels) if ft else {}
+    episodes = load_episode_curves(runs.finetune, labels) if ft else {}
     # Everything is computed before anything is written: a missing reference fails with no file.
     for kind, scores, title in (("zeroshot", [*zs, *rnd], TABLE1), ("finetune", ft, TABLE2)):
         result = aggregate_report.compute(scores, kind, title, normaliser, bootstrap) if scores else None
@@ -164,7 +169,6 @@ def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_su
         _write(out_dir / "table1_zeroshot_normalised.csv", to_csv(report.zeroshot, normalised=True), report)
         _write_normalised(out_dir, "table1_zeroshot", report.zeroshot, report)
         sections += [section, ""]
-        report.notes += mixed_pretraining_notes(zs, "Table 1")
     if ft:
         report.finetune = build_table(ft, TABLE2, spread)
         section = table_markdown_section(report.finetune)
@@ -172,7 +176,6 @@ def _write_report(report, paths, out_dir, spread, zs, ft, rnd, zs_success, ft_su
         if len(frames) > 1:
             report.notes.append("fine-tuning runs end at different frame counts: " + ", ".join(
                 f"{n} run(s) at {f}" for f, n in sorted(frames.items())) + "; Table 2 mixes budgets")
-        report.notes += mixed_pretraining_notes(ft, "Table 2")
         unfinished = [str(r.path) for r in runs.finetune if not r.run.is_finished()]
         if unfinished:
             report.notes.append("unfinished fine-tuning runs (last evaluation used): " + ", ".join(unfinished))

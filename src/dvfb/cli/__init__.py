@@ -17,7 +17,7 @@ import sys
 from dvfb import __version__
 from dvfb.cli import (analyze, dataset, demo, finetune, info, pretrain, random_policy, report, share, supervised, sweep,
                       video, zeroshot)
-from dvfb.cli.common import Formatter
+from dvfb.cli.common import Formatter, Parser, unknown_option_message
 from dvfb.errors import DvfbError, RunInterrupted
 
 # The order of `dvfb --help`.
@@ -27,7 +27,7 @@ COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo,
 
 def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
     """The parser; ``pretrain``'s config flags are those of ``agent`` (read from ``--agent`` first)."""
-    parser = argparse.ArgumentParser(prog="dvfb", description="Online unsupervised zero-shot RL: DVFB, FB and "
+    parser = Parser(prog="dvfb", description="Online unsupervised zero-shot RL: DVFB, FB and "
                                      "baselines (`dvfb agents`).", formatter_class=Formatter)
     parser.add_argument("--version", action="version", version=f"dvfb {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
@@ -41,6 +41,7 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
     for subparser in sub.choices.values():
         subparser.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
                                help="log progress messages")
+    parser.set_defaults(commands=sub.choices)  # the command's own parser names a word none of its flags took
     return parser
 
 
@@ -66,7 +67,9 @@ def _requested_agent(argv: list[str]) -> str:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(_requested_agent(argv))
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        args.commands[args.command].error(unknown_option_message(args, extra))
     # What a run's meta.json records as its command: this call's, also when it runs in-process (a
     # sweep's debug executor, the tests), where sys.argv is the host program's.
     args.command_line = ["dvfb", *argv]

@@ -21,6 +21,36 @@ class Formatter(argparse.RawDescriptionHelpFormatter):
     pass
 
 
+class Parser(argparse.ArgumentParser):
+    """The parser of ``dvfb`` and of each command: a bad flag or value is one line naming it, exit
+    status 2, as every other bad input is (argparse prints its whole usage first, which for
+    ``dvfb pretrain`` is dozens of lines burying the one that matters)."""
+
+    def error(self, message: str):
+        hint = "" if "--help" in message else f" (`{self.prog} --help` lists the options)"
+        self.exit(2, f"{self.prog}: error: {message}{hint}\n")
+
+
+def unknown_option_message(args: argparse.Namespace, extra: list[str]) -> str:
+    """What to say of command-line words no option of the command took: for ``dvfb pretrain``, a
+    config option of another method names the methods that have it (the flags depend on --agent)."""
+    if getattr(args, "command", None) == "pretrain":
+        # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
+        from dvfb.agents import agent_names
+        from dvfb.config import canonical_key, field_type
+        from dvfb.runs.run_config import run_config_class
+
+        for word in extra:
+            if not word.startswith("--"):
+                continue
+            key = canonical_key(word.split("=", 1)[0])
+            owners = [name for name in agent_names() if field_type(run_config_class(name), key) is not None]
+            if owners:
+                return (f"{word.split('=', 1)[0]} is an option of {', '.join(owners)}, not of --agent {args.agent}; "
+                        f"`dvfb pretrain --agent {args.agent} --help` lists its options")
+    return f"unrecognized arguments: {' '.join(extra)}"
+
+
 def default_run_dir(config) -> Path:
     return Path("runs") / f"{config.agent}_{config.domain}_{config.preset}_s{config.seed}"
 

@@ -23,7 +23,7 @@ def cmd_push(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.errors import ConfigError
+    from dvfb.errors import ConfigError, RemoteError
     from dvfb.runs.export import is_export
 
     path = Path(args.model)
@@ -31,15 +31,35 @@ def cmd_push(args: argparse.Namespace) -> int:
         raise ConfigError(f"{path} is not an exported model (no model.safetensors and config.json of dvfb); "
                           "make one with `dvfb export RUN --out DIR`")
     try:
-        from huggingface_hub import HfApi
+        from huggingface_hub import HfApi, get_token
+        from huggingface_hub.utils import validate_repo_id
     except ImportError as exc:
         raise ConfigError("dvfb push needs the optional hub extra: pip install 'dvfb[hub]' "
                           "(huggingface_hub)") from exc
+    # Everything that needs no network is checked before the first request is sent.
+    if get_token() is None:
+        raise ConfigError("dvfb push needs Hugging Face credentials: set HF_TOKEN or log in with `hf auth login` "
+                          "(it writes the token file); nothing was sent")
+    try:
+        validate_repo_id(args.repo)
+    except ValueError as exc:
+        raise ConfigError(f"--repo {args.repo!r} is not a hub repository name (ORG/NAME): {_first_line(exc)}") \
+            from exc
     api = HfApi()
-    api.create_repo(args.repo, private=args.private, exist_ok=True)
-    commit = api.upload_folder(folder_path=str(path), repo_id=args.repo, commit_message=args.message)
+    try:
+        api.create_repo(args.repo, private=args.private, exist_ok=True)
+        commit = api.upload_folder(folder_path=str(path), repo_id=args.repo, commit_message=args.message)
+    except Exception as exc:
+        # The hub client's errors are its own classes and those of whichever HTTP library its version
+        # uses (requests, httpx, ...): at this point every one of them is the network's or the hub's.
+        raise RemoteError(f"cannot push {path} to {args.repo}: {type(exc).__name__}: {_first_line(exc)}") from exc
     print(f"pushed {path} to {args.repo}: {commit}")
     return 0
+
+
+def _first_line(exc: Exception) -> str:
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    return lines[0] if lines else "no reason given"
 
 
 def register(sub, agent: str) -> None:

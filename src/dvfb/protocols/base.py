@@ -29,6 +29,11 @@ from dvfb.errors import ConfigError
 # states with rewards computed by a function or relabelled from a dataset's physics, or a goal
 # state (protocols that infer skills).
 SKILL_SOURCES = ("rewards", "reward_fn", "dataset", "goal")
+# What a protocol without a source lacks, as its refusal says it (docs/methods.md, "Protocols").
+_SOURCE_INFERENCE = {"rewards": "inference from the task's rewards",
+                     "reward_fn": "inference from a reward function (--skill-source reward_fn)",
+                     "dataset": "inference from a relabelled dataset (--skill-source dataset)",
+                     "goal": "goal inference (--skill-source goal)"}
 
 
 class ZeroShotProtocol:
@@ -51,12 +56,20 @@ class ZeroShotProtocol:
         """Environment steps in the task before the evaluation (for progress bars)."""
         return 0
 
-    def check_source(self, source: str, agent_name: str) -> None:
+    @classmethod
+    def check_source(cls, source: str, agent_name: str) -> None:
+        """Refuse a skill source the protocol has no inference from, saying what the method lacks
+        (a class method: checked before the ``--inference.*`` options, which differ by protocol)."""
         if source not in SKILL_SOURCES:
             raise ConfigError(f"skill source must be one of {SKILL_SOURCES}, got {source!r}")
-        if source not in self.sources:
-            raise ConfigError(f"--skill-source {source} needs a method that infers skills from data; {agent_name!r} "
-                              f"uses the {self.name} protocol (use the default)")
+        if source in cls.sources:
+            return
+        lacks = _SOURCE_INFERENCE[source]
+        if cls.sources == ("rewards",) and cls.name == "single_policy":
+            raise ConfigError(f"{agent_name!r} has no {lacks}: it has a single policy and no skill to infer "
+                              "(leave out --skill-source)")
+        raise ConfigError(f"{agent_name!r} has no {lacks}: its {cls.name} protocol finds the skill from "
+                          f"--skill-source {', '.join(cls.sources[:-1])} or {cls.sources[-1]}")
 
     def task_skill(self, model, env, rng: np.random.Generator, episode_length: int, *, progress=None,
                    keep_data: bool = False) -> tuple[torch.Tensor | None, dict]:

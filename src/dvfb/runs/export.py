@@ -46,6 +46,8 @@ DEFAULT_INFERENCE_SIZE = 100_000
 
 
 STATISTICS = "statistics"  # the weights file's prefix of the model's data statistics
+# The folder an export is written into before its files are moved into place (write_export).
+_STAGE = ".export.tmp-"
 
 
 def is_export(path: str | os.PathLike) -> bool:
@@ -67,7 +69,7 @@ class Export:
 def _check_out(out: Path, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} is a file; give a directory for the exported model")
-    if out.is_dir() and any(out.iterdir()):
+    if out.is_dir() and any(not p.name.startswith(_STAGE) for p in out.iterdir()):
         if not overwrite:
             raise ConfigError(f"--out {out} is not empty; pass --overwrite to replace an exported model there")
         if not is_export(out):
@@ -154,6 +156,7 @@ def write_export(out: str | os.PathLike, model: Model, config: PretrainConfig, *
                  inference_data: dict[str, np.ndarray] | None = None, overwrite: bool = False) -> Path:
     """Write ``model`` (of run config ``config``, after ``frames`` frames) as an exported model.
     ``out`` must be absent or empty (or, with ``overwrite``, an exported model)."""
+    from safetensors import SafetensorError
     from safetensors.torch import save_file
 
     out = Path(out)
@@ -167,24 +170,46 @@ def write_export(out: str | os.PathLike, model: Model, config: PretrainConfig, *
             "zero_shot": dict(sorted((zero_shot or {}).items())), "command": command,
             "inference_data": INFERENCE_FILE if inference_data is not None else None,
             "run_config": to_dict(config)}
-    created = not out.exists()
+    # The topmost folder this call creates (a nested --out creates its parents too): what a failure
+    # removes again, so that nothing is left behind.
+    created = out if not out.exists() else None
+    while created is not None and not created.parent.exists():
+        created = created.parent
+    # Every file is written into a folder of its own inside --out first and moved in only when all
+    # are written: a full disk leaves an exported model being replaced (--overwrite) as it was.
+    stage = out / f"{_STAGE}{os.getpid()}"
     try:
         out.mkdir(parents=True, exist_ok=True)
-        for stale in (MODEL_FILE, CONFIG_FILE, CARD_FILE, INFERENCE_FILE):
-            (out / stale).unlink(missing_ok=True)
-        save_file(weights, str(out / MODEL_FILE), metadata={"format": EXPORT_FORMAT, "agent": config.agent})
+        _remove_stages(out)  # of a writer killed before it could clean up
+        stage.mkdir()
+        save_file(weights, str(stage / MODEL_FILE), metadata={"format": EXPORT_FORMAT, "agent": config.agent})
         if inference_data is not None:
-            np.savez_compressed(out / INFERENCE_FILE, **inference_data)
-        (out / CARD_FILE).write_text(model_card(info), encoding="utf-8")
-        write_json_atomic(out / CONFIG_FILE, info)  # last: a directory without it is no export
-        shutil.copymode(out / CONFIG_FILE, out / MODEL_FILE)  # the umask's mode, as the other files
+            np.savez_compressed(stage / INFERENCE_FILE, **inference_data)
+        (stage / CARD_FILE).write_text(model_card(info), encoding="utf-8")
+        write_json_atomic(stage / CONFIG_FILE, info)
+        shutil.copymode(stage / CONFIG_FILE, stage / MODEL_FILE)  # the umask's mode, as the other files
+        (out / CONFIG_FILE).unlink(missing_ok=True)  # first: while files are swapped it is no export
+        if inference_data is None:
+            (out / INFERENCE_FILE).unlink(missing_ok=True)  # the replaced model's samples
+        for name in (MODEL_FILE, INFERENCE_FILE, CARD_FILE, CONFIG_FILE):  # config.json last
+            if (stage / name).exists():
+                os.replace(stage / name, out / name)  # a rename in one folder: no space needed
+        stage.rmdir()
     except BaseException as exc:
-        if created:
-            shutil.rmtree(out, ignore_errors=True)
+        shutil.rmtree(stage, ignore_errors=True)
+        if created is not None:
+            shutil.rmtree(created, ignore_errors=True)
         if isinstance(exc, OSError):
             raise RunDirError(f"cannot write the exported model in {out}: {exc.strerror or exc}") from exc
+        if isinstance(exc, SafetensorError):  # safetensors' own error for a failed write (a full disk)
+            raise RunDirError(f"cannot write the exported model in {out}: {' '.join(str(exc).split())}") from exc
         raise
     return out
+
+
+def _remove_stages(out: Path) -> None:
+    for path in out.glob(f"{_STAGE}*"):
+        shutil.rmtree(path, ignore_errors=True)
 
 
 def export_model(run: PretrainRun, out: str | os.PathLike, *, snapshot: int | None = None,
@@ -222,8 +247,15 @@ def load_export(path: str | os.PathLike, device: str | torch.device = "cpu") -> 
     if info.get("format_version") != EXPORT_VERSION:
         raise CheckpointError(f"{path} is an exported model of format version {info.get('format_version')!r}; this "
                               f"dvfb ({__version__}) reads version {EXPORT_VERSION}")
-    config = run_config_from_dict(info.get("run_config"), str(path / CONFIG_FILE))
-    obs_dim, action_dim = info["observation_space"]["shape"][0], info["action_space"]["shape"][0]
+    try:
+        config = run_config_from_dict(info.get("run_config"), str(path / CONFIG_FILE))
+    except ConfigError as exc:  # a damaged file, named where the message does not name it yet
+        raise CheckpointError(str(exc) if str(path) in str(exc) else f"{path / CONFIG_FILE} is damaged: {exc}") \
+            from exc
+    obs_dim, action_dim = _width(info, "observation_space", path), _width(info, "action_space", path)
+    frames = info.get("frames")
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
+        raise CheckpointError(f"{path / CONFIG_FILE} is damaged: 'frames' is {frames!r}, not a count of frames")
     model = make_model(config.agent, obs_dim, action_dim, config, device)
     try:
         tensors = load_file(str(path / MODEL_FILE), device="cpu")
@@ -242,17 +274,45 @@ def load_export(path: str | os.PathLike, device: str | torch.device = "cpu") -> 
     try:
         model.load_snapshot(modules)
     except (KeyError, RuntimeError) as exc:
-        raise CheckpointError(f"{path / MODEL_FILE} does not fit {config.agent!r}'s networks: {exc}") from exc
+        reason = " ".join(str(exc).split())  # torch's message spans lines; an error is one
+        raise CheckpointError(f"{path / MODEL_FILE} does not fit {config.agent!r}'s networks: {reason}") from exc
     model.eval()
     model.statistics = statistics
-    data = None
-    if info.get("inference_data"):
-        try:
-            with np.load(path / INFERENCE_FILE, allow_pickle=False) as file:
-                data = {key: file[key] for key in file.files}
-        except (OSError, ValueError) as exc:
-            raise CheckpointError(f"{path / INFERENCE_FILE} cannot be read: {exc}") from exc
+    data = _inference_data(path / INFERENCE_FILE, obs_dim) if info.get("inference_data") else None
     return Export(path, model, config, info, data)
+
+
+def _width(info: dict, space: str, path: Path) -> int:
+    """The width of the observation or action space config.json records (one positive integer)."""
+    shape = info.get(space, {}).get("shape") if isinstance(info.get(space), dict) else None
+    if not (isinstance(shape, list) and len(shape) == 1 and isinstance(shape[0], int)
+            and not isinstance(shape[0], bool) and shape[0] > 0):
+        raise CheckpointError(f"{path / CONFIG_FILE} is damaged: it has no {space} shape of one positive width "
+                              f"({space}: {info.get(space)!r})")
+    return shape[0]
+
+
+def _inference_data(file: Path, obs_dim: int) -> dict[str, np.ndarray]:
+    """The arrays of ``inference_data.npz``: observations and next observations of the model's width,
+    as many of each (a damaged or truncated file is named, not a zip error from numpy)."""
+    import zipfile
+    import zlib
+
+    try:
+        with np.load(file, allow_pickle=False) as npz:
+            data = {key: npz[key] for key in npz.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise CheckpointError(f"{file} cannot be read (damaged or truncated?): {exc}") from exc
+    for key in ("obs", "next_obs"):
+        array = data.get(key)
+        if array is None or array.ndim != 2 or array.shape[1] != obs_dim:
+            raise CheckpointError(f"{file} is damaged: {key!r} is "
+                                  + ("missing" if array is None else f"of shape {array.shape}")
+                                  + f"; it must be (N, {obs_dim})")
+    if data["obs"].shape[0] != data["next_obs"].shape[0]:
+        raise CheckpointError(f"{file} is damaged: {data['obs'].shape[0]} observations but "
+                              f"{data['next_obs'].shape[0]} next observations")
+    return data
 
 
 def unpack_export(path: str | os.PathLike, run_dir: str | os.PathLike, overwrite: bool = False,

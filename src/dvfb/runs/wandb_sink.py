@@ -70,6 +70,11 @@ def require_wandb(log: LogConfig) -> None:
     if log.wandb_mode == "online" and not _has_credentials():
         raise ConfigError("--log.wandb-mode online needs W&B credentials (WANDB_API_KEY or `wandb login`); "
                           "pass --log.wandb-mode offline to log locally and `wandb sync` later")
+    # An unreachable server would fail wandb.init only after the run directory exists (and after
+    # W&B's own timeout): refused here, before anything is created.
+    if log.wandb_mode == "online" and not _reachable():
+        raise ConfigError(f"--log.wandb-mode online: the W&B server {_host()} cannot be reached; pass "
+                          "--log.wandb-mode offline to log locally and `wandb sync` later")
 
 
 def _host() -> str:
@@ -108,18 +113,28 @@ def resolve_mode(mode: str) -> str | None:
     return "online" if _has_credentials() and _reachable() else "offline"
 
 
+def stored_wandb_id(run: RunDir) -> str | None:
+    """The W&B id in ``RUN/wandb_id.txt`` (None: no such file); a damaged file is refused in one line.
+    Writes nothing: a resume checks it with everything else before it changes any file."""
+    path = Path(run.path) / ID_FILE
+    if not path.exists():
+        return None
+    try:
+        run_id = path.read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RunDirError(f"cannot read {path}: {exc}") from exc
+    if run_id and all(c in _ID_ALPHABET for c in run_id):
+        return run_id
+    raise RunDirError(f"{path} does not hold a W&B run id ({run_id[:40]!r}); remove it to start a new W&B run")
+
+
 def wandb_run_id(run: RunDir) -> str:
     """The run's W&B id: the one in ``RUN/wandb_id.txt``, or a new random one written there (from the
     operating system's entropy, so that no random stream of the run is touched)."""
+    run_id = stored_wandb_id(run)
+    if run_id is not None:
+        return run_id
     path = Path(run.path) / ID_FILE
-    if path.exists():
-        try:
-            run_id = path.read_text(encoding="utf-8").strip()
-        except OSError as exc:
-            raise RunDirError(f"cannot read {path}: {exc}") from exc
-        if run_id and all(c in _ID_ALPHABET for c in run_id):
-            return run_id
-        raise RunDirError(f"{path} does not hold a W&B run id ({run_id!r}); remove it to start a new W&B run")
     run_id = "".join(secrets.choice(_ID_ALPHABET) for _ in range(12))
     _atomic_write(path, lambda file: file.write((run_id + "\n").encode("utf-8")))
     return run_id

@@ -8,8 +8,10 @@ still stacks its members' networks (bench/README.md, "Members").
 
 The parent holds every member's run-directory lock while its children run, forwards SIGTERM and
 SIGINT to them (as SIGTERM: a second SIGINT would stop a child without its checkpoint), waits for
-all of them, and reports their errors as one. A child whose parent dies (``kill -9``) gets SIGTERM
-from the kernel, so it checkpoints and stops rather than train on without its locks.
+all of them, and reports their errors as one. A child that dies (``kill -9``, the out-of-memory
+killer) or fails has the others stopped with SIGTERM, so that every share has a checkpoint and the
+group resumes together. A child whose parent dies (``kill -9``) gets SIGTERM from the kernel, so it
+checkpoints and stops rather than train on without its locks.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import os
 import signal
 import threading
 import traceback
+from multiprocessing.connection import wait
 from typing import Any, Callable, Sequence
 
 from dvfb import errors
@@ -97,6 +100,38 @@ def _child(target: Callable, args: tuple, threads: int, pipe, parent: int) -> No
     _send(pipe, None)
 
 
+def _died(child) -> tuple[str, str, int | None]:
+    """The outcome of a child that ended without reporting: killed by a signal (the out-of-memory
+    killer's SIGKILL), or an exit of the interpreter itself."""
+    child.join()
+    code = child.exitcode
+    if code is not None and code < 0:
+        name = signal.Signals(-code).name
+        why = " (as the out-of-memory killer does)" if -code == signal.SIGKILL else ""
+        return ("died", f"its process was killed by {name}{why} and wrote nothing after its last resume checkpoint",
+                -code)
+    return "died", f"its process ended with exit code {code} before reporting", None
+
+
+def _answer(child, pipe) -> Any:
+    """The child's message, or its death when it ended without one (waiting for either: a child
+    that dies may leave its pipe open where a process it started still holds it)."""
+    wait([pipe, child.sentinel])
+    try:
+        if pipe.poll():
+            return pipe.recv()
+    except EOFError:
+        pass
+    return _died(child)
+
+
+def _stops_the_group(outcome) -> bool:
+    """Whether a share's ending stops the others: its process died, crashed, was stopped by a signal
+    or failed; a share whose members all went non-finite is a member fault, which the others outlive
+    (docs/members.md)."""
+    return outcome is not None and outcome[0] not in ("stopped", "NonFiniteLossError")
+
+
 def run_in_processes(target: Callable, calls: Sequence[tuple], threads: int, names: Sequence[str],
                      agree: Callable[[list], None] | None = None) -> None:
     """``target(*args, ready=...)`` for every ``args`` of ``calls``, each in its own child process
@@ -106,9 +141,11 @@ def run_in_processes(target: Callable, calls: Sequence[tuple], threads: int, nam
     Each target calls ``ready(status)`` once it has checked and read everything and before it writes
     anything; the children go on together when every one of them is ready and ``agree`` (given the
     statuses) raises nothing. Otherwise the ready ones stop unchanged and the first error is raised.
-    Returns when every child has ended; raises, after all have ended, the children's errors as one
-    :class:`~dvfb.errors.DvfbError` (the first child's class; a signal received here makes it
-    :class:`~dvfb.errors.RunInterrupted`).
+    Once they train, a child that dies (``kill -9``, the out-of-memory killer) or fails stops the
+    others with SIGTERM, so that each writes a checkpoint and the group resumes together. Returns when
+    every child has ended; raises, after all have ended, the children's errors as one
+    :class:`~dvfb.errors.DvfbError` (the first child's class; a signal received here, or one that
+    killed a child, makes it :class:`~dvfb.errors.RunInterrupted` with that signal).
     """
     context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch's threads
     children, pipes = [], []
@@ -119,13 +156,6 @@ def run_in_processes(target: Callable, calls: Sequence[tuple], threads: int, nam
         for child in children:
             if child.is_alive() and child.pid is not None:
                 os.kill(child.pid, signal.SIGTERM)
-
-    def answer(child, pipe) -> Any:
-        try:
-            return pipe.recv()  # blocks until the child reports or dies
-        except EOFError:
-            child.join()
-            return "crash", f"the process ended with exit code {child.exitcode} before reporting", None
 
     main = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, forward) for s in (signal.SIGTERM, signal.SIGINT)} if main else {}
@@ -140,7 +170,7 @@ def run_in_processes(target: Callable, calls: Sequence[tuple], threads: int, nam
             pipes.append(here)
             if received:  # a signal came while starting: this child stops too
                 os.kill(child.pid, signal.SIGTERM)
-        first = [answer(child, pipe) for child, pipe in zip(children, pipes)]
+        first = [_answer(child, pipe) for child, pipe in zip(children, pipes)]
         ready = [isinstance(m, tuple) and m[0] == "ready" for m in first]
         if all(ready) and agree is not None:
             try:
@@ -151,8 +181,8 @@ def run_in_processes(target: Callable, calls: Sequence[tuple], threads: int, nam
         for pipe, is_ready in zip(pipes, ready):
             if is_ready:
                 pipe.send("go" if go else "stop")
-        outcomes = [answer(child, pipe) if is_ready else message
-                    for child, pipe, message, is_ready in zip(children, pipes, first, ready)]
+        outcomes = [None if is_ready else message for message, is_ready in zip(first, ready)]
+        _wait_for_all(children, pipes, [k for k, is_ready in enumerate(ready) if is_ready], outcomes, go)
     finally:
         for child in children:
             child.join()
@@ -164,12 +194,32 @@ def run_in_processes(target: Callable, calls: Sequence[tuple], threads: int, nam
               if outcome is not None and outcome[0] != "stopped"]
     if not failed:
         return
+    # The share that died first in the line: it is why the others stopped.
+    failed.sort(key=lambda item: item[1][0] != "died")
     message = "; ".join(f"{name}: {text}" for name, (_kind, text, _signum) in failed)
-    if received or any(kind == "RunInterrupted" for _name, (kind, _t, _s) in failed):
-        signum = received[0] if received else next(s for _n, (k, _t, s) in failed if k == "RunInterrupted")
-        raise RunInterrupted(message, signum)
+    killed = [s for _name, (kind, _t, s) in failed if kind == "died" and s is not None]
+    interrupted = [s for _name, (kind, _t, s) in failed if kind == "RunInterrupted"]
+    if received or killed or interrupted:
+        raise RunInterrupted(message, (received or killed or interrupted)[0])
     kind = failed[0][1][0]
     if kind == "crash":
         raise RuntimeError(message)
-    error = getattr(errors, kind, DvfbError)
+    error = getattr(errors, kind, DvfbError) if kind != "died" else DvfbError
     raise error(message)
+
+
+def _wait_for_all(children, pipes, pending: list[int], outcomes: list, training: bool) -> None:
+    """Each pending child's outcome into ``outcomes``, in the order they end; while ``training``, the
+    first to die or fail has the others stopped with SIGTERM (each checkpoints and reports)."""
+    pending = list(pending)
+    stopping = False
+    while pending:
+        ready = wait([pipes[k] for k in pending] + [children[k].sentinel for k in pending])
+        for k in [k for k in pending if pipes[k] in ready or children[k].sentinel in ready]:
+            pending.remove(k)
+            outcomes[k] = _answer(children[k], pipes[k])
+            if training and not stopping and _stops_the_group(outcomes[k]):
+                stopping = True
+                for j in pending:
+                    if children[j].is_alive():
+                        os.kill(children[j].pid, signal.SIGTERM)

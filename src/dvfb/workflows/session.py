@@ -24,7 +24,7 @@ from dvfb.errors import CheckpointError, ConfigError
 from dvfb.nets.members import member_slice
 from dvfb.runs import MetricsLogger, load_checkpoint, remove_orphaned_checkpoints, save_checkpoint
 from dvfb.runs.migrations import RESUME_FORMAT, check_resume_format
-from dvfb.runs.wandb_sink import WandbSink
+from dvfb.runs.wandb_sink import WandbSink, stored_wandb_id
 from dvfb.training.metrics import MetricWindow
 from dvfb.training.progress import notify
 from dvfb.training.rollout import EpisodeState, Lane
@@ -104,6 +104,9 @@ class RunSession:
         if state["step"] >= self.total:
             raise ConfigError(f"{self.budget_flag} {self.total} is not beyond the checkpoint's step {state['step']}; "
                               f"pass a larger {self.budget_flag} to extend the run")
+        log = getattr(self.config, "log", None)
+        if log is not None and log.wandb:
+            stored_wandb_id(run)  # a damaged id refuses the resume here, before begin() rewrites config.json
         self.state = state
 
     @property

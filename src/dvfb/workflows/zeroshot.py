@@ -48,9 +48,14 @@ from dvfb.workflows.group import check_one_method
 from dvfb.workflows.resources import evaluation_tasks, open_run
 
 
-def run_protocol(config: PretrainConfig, overrides: dict | None = None) -> ZeroShotProtocol:
-    """The run's zero-shot protocol with its ``inference`` config (plus ``--inference.*`` overrides)."""
-    return zero_shot_protocol(get_spec(config.agent).zero_shot)(merge(config.inference, overrides or {}, "inference."))
+def run_protocol(config: PretrainConfig, overrides: dict | None = None, source: str | None = None) -> ZeroShotProtocol:
+    """The run's zero-shot protocol with its ``inference`` config (plus ``--inference.*`` overrides);
+    with ``source``, the skill source is checked first (a method without that inference is named as
+    such, not by the options its protocol does not have)."""
+    cls = zero_shot_protocol(get_spec(config.agent).zero_shot)
+    if source is not None:
+        cls.check_source(source, config.agent)
+    return cls(merge(config.inference, overrides or {}, "inference."))
 
 
 def load_reward_fn(spec: str) -> Callable[[np.ndarray], np.ndarray]:
@@ -182,8 +187,7 @@ def zeroshot(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
     members = []
     for run_path in run_paths:
         run = open_run(run_path)
-        protocol = run_protocol(run.config, inference)
-        protocol.check_source(skill_source, run.config.agent)
+        protocol = run_protocol(run.config, inference, skill_source)
         evaluation_tasks(run.config, [task])
         members.append((run, protocol))
     if many:
