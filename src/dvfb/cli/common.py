@@ -140,6 +140,17 @@ def member_run_dirs(config, run_dir: str | None, seeds: list[int]) -> list[Path]
     return [Path(run_dir.replace(SEED_PLACEHOLDER, str(seed))) for seed in seeds]
 
 
+def torch_threads_flag(p: argparse.ArgumentParser, on_run: bool = True) -> None:
+    """``--torch-threads`` of a command that computes, the same flag as pre-training's (README.md,
+    "Threads and progress"); ``on_run``: the command uses a pre-training run, whose own setting is
+    its default."""
+    default = ("the run's own --torch-threads when it set one, at most the CPUs this process may use; else as 0"
+               if on_run else "0")
+    p.add_argument("--torch-threads", dest="torch_threads", type=integer(0), default=None if on_run else 0,
+                   help="torch threads of this command; 0: OMP_NUM_THREADS when set, else half the CPUs this "
+                        f"process may use (its affinity and cgroup quota), at least one (default: {default})")
+
+
 def progress_flag(p: argparse.ArgumentParser) -> None:
     """--progress / --no-progress of the commands with a progress bar."""
     p.add_argument("--progress", dest="progress", action="store_true", default=None,

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, integer, protocol_overrides
+from dvfb.cli.common import (Formatter, add_protocol_arguments, add_snapshot_and_seed, integer, progress_flag,
+                             protocol_overrides, torch_threads_flag)
 
 def cmd_video(args: argparse.Namespace) -> int:
     """A video of zero-shot evaluation episodes."""
@@ -14,7 +15,8 @@ def cmd_video(args: argparse.Namespace) -> int:
     result = record_video(args.run, args.task, episodes=args.episodes, out=args.out, max_steps=args.max_steps,
                           frame_skip=args.frame_skip, height=args.height, width=args.width, camera=args.camera,
                           inference=protocol_overrides(args, "inference"),
-                          snapshot=args.snapshot, seed=args.seed, infer=args.infer, overwrite=args.overwrite)
+                          snapshot=args.snapshot, seed=args.seed, infer=args.infer, overwrite=args.overwrite,
+                          progress=args.progress, torch_threads=args.torch_threads)
     returns = ", ".join(f"{r:.1f}" for r in result["returns"])
     print(f"{result['path']}: {result['episodes']} episode(s), {result['frames']} frames at {result['fps']:g} fps; "
           f"returns {returns}; {result['skill_source']}")
@@ -40,5 +42,7 @@ def register(sub, agent: str) -> None:
     p.add_argument("--infer", action="store_true", help="infer z_r anew even if a zero-shot result exists")
     add_snapshot_and_seed(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing video file")
+    progress_flag(p)
+    torch_threads_flag(p)
     add_protocol_arguments(p, "inference")
     p.set_defaults(func=cmd_video)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from dvfb.cli.common import (DeprecatedAlias, Formatter, add_protocol_arguments, add_snapshot_and_seed, parse_goal,
-                             progress_flag, protocol_overrides)
+                             progress_flag, protocol_overrides, torch_threads_flag)
 
 
 def cmd_zeroshot(args: argparse.Namespace) -> int:
@@ -20,10 +20,10 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
     from dvfb.workflows.zeroshot import zeroshot
 
     group = len(args.run) > 1
-    first_run = open_run(args.run[0])
+    first_run = open_run(args.run[0], args.torch_threads)
     config = first_run.config
     for other in args.run[1:]:
-        open_run(other)  # names a missing or broken run before any work
+        open_run(other, args.torch_threads)  # names a missing or broken run before any work
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.workflows.resources import evaluation_tasks
 
@@ -33,7 +33,7 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
     goal = parse_goal(args.goal) if args.goal else None
     options = dict(snapshot=args.snapshot, inference=inference, seed=args.seed, skill_source=args.skill_source,
                    reward_fn=args.reward_fn, goal=goal, overwrite=args.overwrite, progress=args.progress,
-                   dataset=args.dataset)
+                   dataset=args.dataset, torch_threads=args.torch_threads)
     rows = []
     for task in tasks:
         results = zeroshot(args.run if group else args.run[0], task, skip_existing=args.skip_existing, **options)
@@ -79,7 +79,8 @@ def _online(args: argparse.Namespace) -> int:
     many = len(args.run) > 1
     runs = finetune(args.run if many else args.run[0], args.task[0], snapshot=args.snapshot, seed=args.seed,
                     finetune=protocol_overrides(args, "finetune", online=True), resume=args.resume,
-                    overwrite=args.overwrite, progress=args.progress, protocol=args.protocol)
+                    overwrite=args.overwrite, progress=args.progress, protocol=args.protocol,
+                    torch_threads=args.torch_threads)
     for run in runs if many else [runs]:
         curve = FinetuneRun(run.path, None).curve()
         returns = " ".join(f"{e['return']:.1f}" for e in curve.episodes or [])
@@ -124,6 +125,7 @@ def register(sub, agent: str) -> None:
                         "(default: the method's own protocol)")
     p.add_argument("--resume", action="store_true", help="with --protocol: continue from its latest checkpoint")
     progress_flag(p)
+    torch_threads_flag(p)
     add_protocol_arguments(p, "inference")
     add_protocol_arguments(p, "finetune", online=True)
     p.set_defaults(func=cmd_zeroshot)

@@ -10,22 +10,37 @@ from dvfb.agents import get_spec
 from dvfb.errors import ConfigError
 from dvfb.execution import resolve_device
 from dvfb.runs.layout import PretrainRun
+from dvfb.runs.machine import cores, default_torch_threads
 from dvfb.runs.run_config import PretrainConfig
 from dvfb.training.progress import notify
 
 
+def use_threads(requested: int | None = 0, run_setting: int = 0) -> int:
+    """Set this process's torch threads (README.md, "Threads and progress") and return them:
+    ``requested`` (a command's ``--torch-threads``) when positive; when None (not given to a command
+    on a run), the run's own ``torch_threads`` if it set one, at most the CPUs this process may use (a
+    run made on a large node, evaluated on a laptop); otherwise :func:`default_torch_threads`."""
+    if requested:
+        threads = requested
+    elif requested is None and run_setting > 0:
+        threads = min(run_setting, cores())
+    else:
+        threads = default_torch_threads()
+    torch.set_num_threads(threads)
+    return threads
+
+
 def setup_torch(config: PretrainConfig) -> torch.device:
-    if config.torch_threads > 0:
-        torch.set_num_threads(config.torch_threads)
+    use_threads(config.torch_threads)
     return resolve_device(config.device)
 
 
-def open_run(path) -> PretrainRun:
-    """Open a pre-training run and apply its ``torch_threads`` (acting is batch-1 forward passes,
-    which slow down badly when OpenMP threads compete for busy cores)."""
+def open_run(path, torch_threads: int | None = None) -> PretrainRun:
+    """Open a pre-training run and set the threads of the command that uses it (:func:`use_threads`:
+    ``torch_threads``, else the run's own setting, else the default); acting is batch-1 forward
+    passes, which slow down badly when OpenMP threads compete for busy cores."""
     run = PretrainRun.open(path)
-    if run.config.torch_threads > 0:
-        torch.set_num_threads(run.config.torch_threads)
+    use_threads(torch_threads, run.config.torch_threads)
     return run
 
 

@@ -196,6 +196,7 @@ class RunSession:
             self.window.load_state(self.window_state)
         self.started = time.time()
         self.start_step = self.step
+        self.last_log = (self.started, self.step)  # (time, step) of the newest record's rate
 
     def wandb_sink(self) -> WandbSink | None:
         """The run's W&B run when its config asks for one (``--log.wandb``; docs/methods.md, "Logging to

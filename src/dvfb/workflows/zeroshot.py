@@ -153,7 +153,7 @@ def zeroshot(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
              inference: dict | None = None, seed: int | None = None, skill_source: str = "rewards",
              reward_fn: str | Callable | None = None, goal: np.ndarray | None = None, overwrite: bool = False,
              device: str | None = None, progress: bool | None = None, dataset: str | Path | None = None,
-             skip_existing: bool = False):
+             skip_existing: bool = False, torch_threads: int | None = None):
     """Find the task's skill by the run's zero-shot protocol and evaluate ``pi(., skill)``; returns
     the result (a dict of the result file's fields).
 
@@ -165,7 +165,8 @@ def zeroshot(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
     that already have the task's result are left out (their entry is None) instead of being an error.
 
     ``progress``: True shows a bar, False nothing, None a bar on a terminal and otherwise a line
-    every ``DVFB_PROGRESS_SECONDS`` seconds.
+    every ``DVFB_PROGRESS_SECONDS`` seconds. ``torch_threads``: the command's ``--torch-threads``
+    (:func:`~dvfb.workflows.resources.use_threads`; None: the run's own setting or the default).
     """
     for option, value, source in (("--dataset", dataset, "dataset"), ("--reward-fn", reward_fn, "reward_fn"),
                                   ("--goal", goal, "goal")):
@@ -181,7 +182,7 @@ def zeroshot(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
         raise ConfigError("a run is listed twice: the members of a group are distinct runs")
     members = []
     for run_path in run_paths:
-        run = open_run(run_path)
+        run = open_run(run_path, torch_threads)
         protocol = run_protocol(run.config, inference)
         protocol.check_source(skill_source, run.config.agent)
         evaluation_tasks(run.config, [task])
