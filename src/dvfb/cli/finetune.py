@@ -37,7 +37,9 @@ def register(sub, agent: str) -> None:
                        description="Fine-tuning by the method family's protocol: dual-value (a fresh task critic, "
                                    "reward mapping and the skill value) for DVFB/FB, URLB's (pre-trained actor, "
                                    "fresh critic with the pre-trained trunk, extrinsic n-step reward, the "
-                                   "selected skill) for the DDPG baselines. Defaults come from the run's config.")
+                                   "selected skill) for the DDPG baselines. Defaults come from the run's config, "
+                                   "which its preset made (shown by preset below); another fine-tuner chosen with "
+                                   "--protocol starts from its own config's defaults.")
     p.add_argument("run", nargs="+", help="pre-training run directory; several: the members of a group (one method "
                                           "and configuration, seeds aside), fine-tuned together in lockstep with "
                                           "batched updates and actions (docs/members.md)")

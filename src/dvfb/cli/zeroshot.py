@@ -7,14 +7,25 @@ import argparse
 from dvfb.cli.common import (DeprecatedAlias, Formatter, add_protocol_arguments, add_snapshot_and_seed, parse_goal,
                              progress_flag, protocol_overrides, torch_threads_flag)
 
+# zeroshot --protocol online_inference: its options, named after what they configure; --finetune.*
+# (their first name: the protocol runs on the fine-tuning loop) still works, with a note.
+ONLINE, ONLINE_OLD = "online-inference", "finetune"
+
+
+def _online_options(args: argparse.Namespace) -> dict:
+    return protocol_overrides(args, "finetune", online=True, prefix=ONLINE)
+
 
 def cmd_zeroshot(args: argparse.Namespace) -> int:
     if args.protocol is not None:
         return _online(args)
-    if args.resume:
-        from dvfb.errors import ConfigError  # lazy: the command's machinery loads when it runs
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
+    from dvfb.errors import ConfigError
 
+    if args.resume:
         raise ConfigError("--resume continues a zero-shot protocol that runs in the task: pass --protocol with it")
+    if _online_options(args):
+        raise ConfigError(f"--{ONLINE}.* options configure --protocol online_inference; pass it, or leave them out")
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.workflows.resources import open_run
     from dvfb.workflows.zeroshot import zeroshot
@@ -75,10 +86,10 @@ def _online(args: argparse.Namespace) -> int:
         raise ConfigError(f"--protocol {args.protocol} runs in one task at a time: pass one --task")
     if protocol_overrides(args, "inference"):
         raise ConfigError(f"--inference.* options do not apply to --protocol {args.protocol}: its options are "
-                          "--finetune.*")
+                          f"--{ONLINE}.*")
     many = len(args.run) > 1
     runs = finetune(args.run if many else args.run[0], args.task[0], snapshot=args.snapshot, seed=args.seed,
-                    finetune=protocol_overrides(args, "finetune", online=True), resume=args.resume,
+                    finetune=_online_options(args), resume=args.resume,
                     overwrite=args.overwrite, progress=args.progress, protocol=args.protocol,
                     torch_threads=args.torch_threads)
     for run in runs if many else [runs]:
@@ -97,7 +108,8 @@ def register(sub, agent: str) -> None:
                                    "the FB family infers z_r from reward-labelled steps (or a reward function or "
                                    "a goal), the skill-discovery methods select the best prior skill over the "
                                    "same steps, methods without skills use their one policy; then mean-action "
-                                   "evaluation episodes. Defaults come from the run's config.")
+                                   "evaluation episodes. Defaults come from the run's config, which its preset "
+                                   "made (shown by preset below).")
     p.add_argument("run", nargs="+", help="pre-training run directory; several: the members of a group (one method "
                                           "and configuration, seeds aside), evaluated together with batched actor "
                                           "forward passes (docs/members.md)")
@@ -121,11 +133,11 @@ def register(sub, agent: str) -> None:
     p.add_argument("--protocol", default=None,
                    help="online_inference: infer the task from interaction alone (no labelled data; a UCB or "
                         "Thompson-sampling bandit over z), recording every episode's return, then evaluate the "
-                        "final z; runs under RUN/finetune/<task>.<protocol>/ and takes --finetune.* options "
+                        f"final z; runs under RUN/finetune/<task>.<protocol>/ and takes --{ONLINE}.* options "
                         "(default: the method's own protocol)")
     p.add_argument("--resume", action="store_true", help="with --protocol: continue from its latest checkpoint")
     progress_flag(p)
     torch_threads_flag(p)
     add_protocol_arguments(p, "inference")
-    add_protocol_arguments(p, "finetune", online=True)
+    add_protocol_arguments(p, "finetune", online=True, prefix=ONLINE, deprecated_prefix=ONLINE_OLD)
     p.set_defaults(func=cmd_zeroshot)
