@@ -4,6 +4,7 @@ config from flags, and the ``--inference.*`` / ``--finetune.*`` flags of the reg
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import sys
 from collections.abc import Callable
@@ -186,6 +187,36 @@ def member_run_dirs(config, run_dir: str | None, seeds: list[int]) -> list[Path]
         raise ConfigError(f"--run-dir {run_dir} with --seeds needs {SEED_PLACEHOLDER} in it (one run directory "
                           f"per member, e.g. runs/fb_walker_s{SEED_PLACEHOLDER})")
     return [Path(run_dir.replace(SEED_PLACEHOLDER, str(seed))) for seed in seeds]
+
+
+def eval_dir_flag(p: argparse.ArgumentParser) -> None:
+    """``--eval-dir`` of the commands that evaluate an exported model (docs/sharing.md, "Evaluate")."""
+    p.add_argument("--eval-dir", default=None,
+                   help="for an exported model: the run directory it is evaluated in, made from it the first time "
+                        "and reused after; results go there, the export's own files are never written (default: "
+                        "EXPORT.eval beside the exported model)")
+
+
+@contextlib.contextmanager
+def evaluated(paths: str | list[str], eval_dir: str | None, command: list[str] | None):
+    """What a command evaluates, as ``(run directories, inference data, exported)``: ``paths`` as
+    they are, or one exported model's evaluation directory with its inference samples
+    (:func:`~dvfb.workflows.resources.run_or_export`)."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
+    from dvfb.runs.export import is_export
+    from dvfb.workflows.resources import run_or_export
+
+    paths = [paths] if isinstance(paths, str) else list(paths)
+    if len(paths) == 1:
+        with run_or_export(paths[0], eval_dir, command) as (run, data):
+            yield [str(run)], data, is_export(paths[0])
+        return
+    exported = next((path for path in paths if is_export(path)), None)
+    if exported is not None:
+        raise ConfigError(f"{exported} is an exported model: evaluate exported models one at a time")
+    if eval_dir is not None:
+        raise ConfigError("--eval-dir is where an exported model is evaluated; these are run directories")
+    yield paths, None, False
 
 
 def torch_threads_flag(p: argparse.ArgumentParser, on_run: bool = True) -> None:

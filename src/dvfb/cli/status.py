@@ -44,8 +44,9 @@ def _print(status: dict) -> None:
     if status["kind"] == "finetune":
         print(f"  fine-tuning {status['name']} ({status['task']}): {_progress_line(status)}")
         return
+    origin = f", made from the exported model {status['exported_from']}" if status["exported_from"] else ""
     print(f"{status['path']}: {status['agent']} on {status['domain']}, {status['preset']} preset, seed "
-          f"{status['seed']}")
+          f"{status['seed']}{origin}")
     print(f"  pre-training: {_progress_line(status)}")
     metrics = _metrics_line(status)
     if metrics:

@@ -69,7 +69,8 @@ def run_status(path: str | os.PathLike) -> dict:
                   "snapshots": run.snapshot_frames(),
                   "zero_shot": {result.task: {"mean_return": result.mean_return, "eval_episodes": result.eval_episodes}
                                 for _, result in run.zeroshot_results()},
-                  "finetune": [run_status(child.path) for child in run.finetune_runs()]}
+                  "finetune": [run_status(child.path) for child in run.finetune_runs()],
+                  "exported_from": (run.exported_from() or {}).get("export")}
         return status
     if kind == FINETUNE:
         run = FinetuneRun.open(path)

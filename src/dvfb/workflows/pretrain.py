@@ -370,6 +370,7 @@ class PretrainSession(RunSession):
                     from exc
             # Only now, with the checkpoint loaded, may the run's config change (a larger --frames).
             self.run.save_config(config)
+            self.run.record_resume(self.command, self.step)
             notify(f"[pretrain] resuming {self.run.path} from step {self.step} (of {config.frames})")
         if offline:
             self.run.write_trained_on(self.fingerprint)  # what an offline zero-shot checks its data against
