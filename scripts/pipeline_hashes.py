@@ -52,7 +52,7 @@ TASK = "point_mass_maze_reach_top_left"
 # The temporary root of the runs (and its resolved form), replaced in every hashed string.
 ROOTS: list[str] = []
 # Fields that measure time, not what was computed.
-TIMING = {"wall_clock_s", "fps", "frames_per_s", "resumed_from"}
+TIMING = {"wall_clock_s", "fps", "fps_recent", "frames_per_s", "resumed_from"}
 IGNORED: set[str] = set()  # --ignore-key: a config field added by the change under test
 COMMON = ["--domain", DOMAIN, "--frames", "1500", "--seed-frames", "500", "--update-every", "4",
           "--checkpoint-every", "1000", "--log-every", "250", "--torch-threads", "1", "--snapshot-frames", "1000",

@@ -369,9 +369,13 @@ def test_analyze_value_end_to_end(tiny_run: Path, capsys):
     assert "--overwrite" in capsys.readouterr().err
 
 
-def test_analyze_exploration_end_to_end(tiny_run: Path, capsys):
+def test_analyze_exploration_end_to_end(tiny_run: Path, capsys, monkeypatch):
+    monkeypatch.setenv("DVFB_PROGRESS_SECONDS", "0")  # off a terminal: a progress line at every step
     assert main(["analyze-exploration", str(tiny_run), "--skills", "3", "--repeats", "2", "--steps", "100"]) == 0
-    assert "coverage" in capsys.readouterr().out
+    captured = capsys.readouterr()
+    assert "coverage" in captured.out
+    progress = [line for line in captured.err.splitlines() if line.startswith("[analyze-exploration] ")]
+    assert len(progress) == 600 and progress[-1].startswith("[analyze-exploration] 600/600 steps (100%)")
     out = tiny_run / "analysis"
     summary = json.loads((out / "exploration.json").read_text())
     assert summary["actions"] == "rollout" and summary["cell_size"] == 0.02

@@ -456,9 +456,9 @@ def test_workflow_records_episodes_evaluates_and_resumes_exactly(pretrained: Pat
 def test_zeroshot_with_the_protocol_runs_it_in_the_task_and_prints_each_episode(pretrained: Path, capsys):
     from dvfb.cli import main
 
-    argv = ["zeroshot", str(pretrained), "--task", TASK, "--protocol", "online_inference", "--finetune.frames",
-            "1000", "--finetune.eval-every", "1000", "--finetune.eval-episodes", "1", "--finetune.candidates", "8",
-            "--no-progress"]
+    argv = ["zeroshot", str(pretrained), "--task", TASK, "--protocol", "online_inference", "--online-inference.frames",
+            "1000", "--online-inference.eval-every", "1000", "--online-inference.eval-episodes", "1",
+            "--online-inference.candidates", "8", "--no-progress"]
     assert main(argv) == 0
     out = capsys.readouterr().out
     run = pretrained / "finetune" / f"{TASK}.online_inference"

@@ -4,6 +4,7 @@ model the run itself gives."""
 
 from __future__ import annotations
 
+import json
 import os
 import pickle
 import shutil
@@ -75,6 +76,11 @@ def test_an_exported_model_copied_elsewhere_acts_and_infers_as_the_run(run, tmp_
                                rtol=1e-5, atol=1e-6)
     data = np.load(copy / "inference_data.npz")
     assert data["obs"].shape == data["next_obs"].shape == (2000, 4) and data["physics"].shape[0] == 2000
+    # The physics of each next observation too: a task's reward is recomputed from them.
+    assert data["next_physics"].shape == data["physics"].shape
+    within_episodes = np.all(data["obs"][1:] == data["next_obs"][:-1], axis=1)  # row i + 1 follows row i
+    assert within_episodes.sum() >= 1990
+    assert np.array_equal(data["next_physics"][:-1][within_episodes], data["physics"][1:][within_episodes])
     # The snapshot's data statistics travel with the weights (online task inference reads Cov(B)).
     assert torch.equal(original.model.statistics["cov_backward"], exported.model.statistics["cov_backward"])
 
@@ -87,8 +93,16 @@ def test_the_model_card_carries_the_metadata_and_the_results(run, tmp_path):
     assert meta["library_name"] == "dvfb" and "fb" in meta["tags"] and "point_mass_maze" in meta["tags"]
     result = json_result(run)
     (entry,) = meta["model-index"][0]["results"]
-    assert entry["dataset"]["name"] == MAZE_TASK
-    assert entry["metrics"][0]["value"] == pytest.approx(result, abs=0.05)
+    # The hub's results format: task, dataset and metrics; the budget in the metric's args.
+    assert entry["task"]["type"] == "reinforcement-learning"
+    assert entry["dataset"] == {"type": f"dvfb/{MAZE_TASK}", "name": MAZE_TASK}
+    (metric,) = entry["metrics"]
+    assert metric["type"] == "mean_reward" and metric["value"] == pytest.approx(result, abs=0.005)
+    assert metric["args"] == {"eval_episodes": 1, "labelled_steps": 10_000, "skill_source": "rewards"}
+    assert metric["verified"] is False
+    # Beside the number in the card's table, its budget.
+    row = next(line for line in text.splitlines() if line.startswith(f"| {MAZE_TASK} |"))
+    assert f"{result:.1f} ± " in row and "1 episodes, 10,000 reward-labelled steps" in row
     assert "dvfb pretrain --agent fb --domain point_mass_maze --frames 2000" in text
     assert "not comparable with the paper's tables" in text  # 2,000 frames at the small preset
     info = yaml.safe_load((out / "config.json").read_text())  # JSON is YAML
@@ -109,8 +123,6 @@ def test_an_export_is_not_a_run_and_a_report_passes_over_it(run, tmp_path, capsy
     shutil.copytree(run, tmp_path / "runs" / "fb", ignore=shutil.ignore_patterns("checkpoints"))
     assert main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "report")]) == 0
     capsys.readouterr()
-    assert main(["zeroshot", str(out), "--task", MAZE_TASK]) == 2
-    assert "is an exported model (dvfb export), not a run directory" in capsys.readouterr().err
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     assert main(["pretrain", "--agent", "fb", "--domain", "point_mass_maze", "--frames", "600", "--seed-frames", "500",
                  "--run-dir", str(out), "--overwrite"]) == 2
@@ -311,3 +323,113 @@ def test_push_refuses_without_credentials_before_the_network_and_network_errors_
     (tmp_path / "hf_home" / "token").write_text("hf_x")
     line = push({**base, "HF_ENDPOINT": f"http://127.0.0.1:{_closed_port()}"})
     assert f"cannot push {out} to org/name:" in line, line
+
+
+FAST = ["--inference.steps", "300", "--inference.random-action-steps", "100", "--inference.eval-episodes", "1"]
+
+
+def _files(directory: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(directory.iterdir())}
+
+
+def test_an_exported_model_is_evaluated_from_the_command_line_beside_it(run, tmp_path, capsys):
+    """`dvfb zeroshot EXPORT` from fresh steps, from its inference data (a reward function, or the
+    task's rewards relabelled from their physics), and by online inference, then `dvfb video EXPORT`:
+    the results go to EXPORT.eval, a run directory made from it; the export is only read."""
+    export = tmp_path / "shared" / "fb_maze"
+    assert main(["export", str(run), "--out", str(export), "--with-inference-data"]) == 0
+    before = _files(export)
+    evaluation = tmp_path / "shared" / "fb_maze.eval"
+
+    assert main(["zeroshot", str(export), "--task", MAZE_TASK, *FAST]) == 0
+    out = capsys.readouterr()
+    assert f"results: {evaluation / 'zeroshot'}" in out.out and "exported model" in out.err
+    fresh = json.loads((evaluation / "zeroshot" / f"{MAZE_TASK}.json").read_text())
+    assert fresh["skill_source"] == "rewards" and fresh["eval_episodes"] == 1
+    made = json.loads((evaluation / "exported_from.json").read_text())
+    assert made["export"] == str(export.resolve()) and made["frames"] == 2000
+
+    # A reward function on the inference data gives the skill the run gives from its own replay.
+    reward_file = tmp_path / "reward.py"
+    reward_file.write_text("def reward(next_obs):\n    return next_obs[:, 0] - next_obs[:, 1]\n")
+    own = tmp_path / "own"
+    shutil.copytree(run, own)
+    source = ["--skill-source", "reward_fn", "--reward-fn", f"{reward_file}:reward", "--overwrite", *FAST]
+    assert main(["zeroshot", str(own), "--task", MAZE_TASK, *source]) == 0
+    assert main(["zeroshot", str(export), "--task", MAZE_TASK, *source]) == 0
+    from_data = json.loads((evaluation / "zeroshot" / f"{MAZE_TASK}.json").read_text())
+    assert "the exported model's inference data (2000 transitions)" in from_data["inference_info"]["states"]
+    np.testing.assert_allclose(from_data["z"], json_result_z(own), rtol=1e-5, atol=1e-6)
+
+    assert main(["zeroshot", str(export), "--task", MAZE_TASK, "--skill-source", "dataset", "--overwrite", *FAST]) == 0
+    relabelled = json.loads((evaluation / "zeroshot" / f"{MAZE_TASK}.json").read_text())
+    assert relabelled["inference_info"]["states"].endswith(f"rewards of {MAZE_TASK} relabelled from physics")
+
+    online = ["--protocol", "online_inference", "--online-inference.frames", "200", "--online-inference.eval-every",
+              "200", "--online-inference.eval-episodes", "1"]
+    assert main(["zeroshot", str(export), "--task", MAZE_TASK, *online]) == 0
+    assert (evaluation / "finetune" / f"{MAZE_TASK}.online_inference" / "curve.json").is_file()
+    capsys.readouterr()
+
+    # Rendered with the skill of the zero-shot result above, with progress lines off a terminal.
+    environment = {**os.environ, "MUJOCO_GL": "osmesa", "PYOPENGL_PLATFORM": "osmesa", "DVFB_PROGRESS_SECONDS": "0"}
+    done = subprocess.run([sys.executable, "-m", "dvfb", "video", str(export), "--task", MAZE_TASK, "--max-steps",
+                           "20", "--frame-skip", "5", "--height", "48", "--width", "64"], capture_output=True,
+                          text=True, env=environment)
+    assert done.returncode == 0, done.stderr
+    assert (evaluation / "analysis" / f"video_{MAZE_TASK}.gif").is_file() and "z from" in done.stdout
+    progress = [line for line in done.stderr.splitlines() if line.startswith(f"[video {MAZE_TASK}] ")]
+    assert progress and progress[-1].startswith(f"[video {MAZE_TASK}] 20/20 steps (100%)")
+    assert _files(export) == before  # the export's own files: never written
+
+
+def json_result_z(run: Path) -> list[float]:
+    return json.loads((run / "zeroshot" / f"{MAZE_TASK}.json").read_text())["z"]
+
+
+def test_an_evaluation_directory_is_checked_and_a_failed_first_one_is_removed(run, tmp_path, capsys):
+    def fails(argv, message):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert message in err[-1], (argv, err)
+
+    export = tmp_path / "export"
+    dvfb.load(run).save_pretrained(export)
+    capsys.readouterr()
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    fails(["zeroshot", str(export), "--task", MAZE_TASK, "--eval-dir", str(run)],
+          "was trained, not made from an exported")
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+    fails(["zeroshot", str(export), "--task", "walker_walk", *FAST], "belongs to domain 'walker'")
+    assert not (tmp_path / "export.eval").exists()  # made for the command, removed with its failure
+    # Exported without inference data: nothing to relabel.
+    fails(["zeroshot", str(export), "--task", MAZE_TASK, "--skill-source", "dataset", *FAST],
+          "--skill-source dataset needs --dataset DIR")
+    fails(["zeroshot", str(run), "--task", MAZE_TASK, "--eval-dir", str(tmp_path / "x")], "is not an exported model")
+    other = tmp_path / "other"
+    shutil.copytree(export, other)
+    assert main(["zeroshot", str(export), "--task", MAZE_TASK, *FAST]) == 0
+    # Other weights in the same evaluation directory: refused.
+    from safetensors.torch import load_file, save_file
+
+    weights = load_file(str(other / "model.safetensors"))
+    name = next(iter(weights))
+    weights[name] = weights[name] + 1
+    save_file(weights, str(other / "model.safetensors"))
+    fails(["zeroshot", str(other), "--task", MAZE_TASK, "--eval-dir", str(tmp_path / "export.eval"), *FAST],
+          "holds the evaluation of another exported model")
+
+
+def test_the_card_lists_every_command_that_made_the_run(run, tmp_path):
+    resumed = tmp_path / "resumed"
+    shutil.copytree(run, resumed)
+    argv = ["pretrain", "--agent", "fb", "--domain", "point_mass_maze", "--frames", "2500", "--seed-frames", "500",
+            "--run-dir", str(resumed), "--replay.record-physics", "true", "--no-progress", *TINY, "--resume"]
+    assert main(argv) == 0
+    (resume,) = json.loads((resumed / "meta.json").read_text())["resumes"]
+    assert resume["command"] == ["dvfb", *argv] and resume["step"] == 2000
+    card = (dvfb.load(resumed).save_pretrained(tmp_path / "export") / "README.md").read_text()
+    made = card.split("```bash\n", 1)[1].split("```", 1)[0].splitlines()
+    assert made[0].startswith("dvfb pretrain --agent fb --domain point_mass_maze --frames 2000 ")
+    assert made[1].startswith("dvfb pretrain --agent fb --domain point_mass_maze --frames 2500 ")
+    assert made[1].endswith("--resume") and len(made) == 2

@@ -199,8 +199,9 @@ def _snapshot_modules(run: Path, frames: int) -> dict:
 
 
 def metric_records(run: Path) -> dict[str, list[dict]]:
-    """Every metric record of a run, by file, without its speed field (fps: a wall-clock reading)."""
-    return {path.name: [{k: v for k, v in json.loads(line).items() if k != "fps"} for line in path.read_text().splitlines()]
+    """Every metric record of a run, by file, without its speed fields (fps, fps_recent: wall-clock readings)."""
+    return {path.name: [{k: v for k, v in json.loads(line).items() if not k.startswith("fps")}
+                        for line in path.read_text().splitlines()]
             for path in sorted((run / "metrics").glob("*.jsonl"))}
 
 
@@ -234,8 +235,9 @@ def test_sigterm_checkpoints_and_resume_equals_uninterrupted(tmp_path):
     assert records["train.jsonl"] and records == metric_records(split)
 
 
-def _interrupted(argv: list[str], watch: Path) -> None:
-    """Run ``argv`` in a process, SIGTERM it once ``watch`` (a metrics file) exists, then resume it."""
+def _interrupted(argv: list[str], watch: Path) -> str:
+    """Run ``argv`` in a process, SIGTERM it once ``watch`` (a metrics file) exists, then resume it;
+    returns what the stopped process said on stderr."""
     process = _spawn(argv)
     _wait_for(watch, process)
     process.send_signal(signal.SIGTERM)
@@ -243,6 +245,7 @@ def _interrupted(argv: list[str], watch: Path) -> None:
     assert process.returncode == 128 + signal.SIGTERM and "SIGTERM received" in err, err
     resumed = subprocess.run([*DVFB, *argv, "--resume"], capture_output=True, text=True)
     assert resumed.returncode == 0, resumed.stderr
+    return err
 
 
 FINETUNE = ["--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "--finetune.frames", "2000",
@@ -258,7 +261,9 @@ def test_a_signal_changes_no_metric_record_of_a_group_or_a_fine_tuning(finished_
     full, split = str(tmp_path / "full_{seed}"), str(tmp_path / "split_{seed}")
     group = ["pretrain", "--agent", "fb", *MAZE, "--frames", "2500", "--no-progress", *TINY, "--seeds", "0,1"]
     assert main([*group, "--run-dir", full]) == 0
-    _interrupted([*group, "--run-dir", split], tmp_path / "split_1" / "metrics" / "train.jsonl")
+    err = _interrupted([*group, "--run-dir", split], tmp_path / "split_1" / "metrics" / "train.jsonl")
+    # The message names where each member continues, not the folder they share.
+    assert f"(runs {tmp_path / 'split_0'}, {tmp_path / 'split_1'})" in err.strip().splitlines()[-1]
     for seed in (0, 1):
         a, b = tmp_path / f"full_{seed}", tmp_path / f"split_{seed}"
         assert metric_records(a)["train.jsonl"] and metric_records(a) == metric_records(b), seed

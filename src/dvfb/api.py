@@ -28,7 +28,7 @@ from dvfb.execution import resolve_device
 from dvfb.runs.export import export_model, is_export, load_export, write_export
 from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run
-from dvfb.workflows.zeroshot import check_goal, infer_from_reward_fn, run_protocol
+from dvfb.workflows.zeroshot import check_goal, exported_states, infer_from_reward_fn, run_protocol
 
 
 class PretrainedModel:
@@ -107,11 +107,7 @@ class PretrainedModel:
 
     def _exported_states(self):
         data = self.export.inference_data if self.export is not None else None
-        if not data:
-            return None
-        device = self.model.device
-        return (torch.as_tensor(data["obs"], device=device), torch.as_tensor(data["next_obs"], device=device),
-                f"the exported model's inference data ({len(data['obs'])} transitions)")
+        return exported_states(data, self.model.device) if data else None
 
     def save_pretrained(self, out: str | Path, with_inference_data: bool = False, overwrite: bool = False) -> Path:
         """Write the model as an exported model (docs/sharing.md): ``model.safetensors``,
@@ -125,7 +121,8 @@ class PretrainedModel:
             raise ConfigError(f"{self.export.path} has no inference data to save")
         info = self.export.info
         return write_export(out, self.model, self.config, frames=info["frames"], zero_shot=info.get("zero_shot"),
-                            command=info.get("command"), inference_data=data, overwrite=overwrite)
+                            command=info.get("command"), commands=info.get("commands"),
+                            zero_shot_budget=info.get("zero_shot_budget"), inference_data=data, overwrite=overwrite)
 
     def act(self, obs: np.ndarray, z: torch.Tensor | None = None, explore: bool = False) -> np.ndarray:
         """One action: the policy's mean (or a rollout sample with ``explore``)."""

@@ -14,6 +14,7 @@ import json
 import math
 import types
 import typing
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -280,11 +281,17 @@ def _optional(parser_fn):
 
 
 def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "",
-                  defaults: Any | None = None, skip: tuple[str, ...] = ()) -> None:
+                  defaults: Any | None = None, skip: tuple[str, ...] = (), *,
+                  default_text: Callable[[str], Any] | None = None, deprecated_prefix: str | None = None,
+                  alias_action: type | None = None) -> None:
     """Add one ``--option`` per field of ``cls`` (nested dataclasses get ``--outer.inner``).
 
     Options default to ``argparse.SUPPRESS`` so that only what the user typed overrides the preset;
-    the help text shows the default of ``defaults`` (or of ``cls()``).
+    the help text shows the default of ``defaults`` (or of ``cls()``), or ``default_text(name)`` for
+    the field ``name`` (dotted below ``cls``), an object whose ``str()`` is taken only when the help
+    is shown. ``deprecated_prefix``: an older prefix whose flags still set the same options, left out
+    of the help, through ``alias_action`` (an argparse Action that takes ``deprecated``, the old
+    option strings, and ``replacement``, the flag to use instead).
     """
     defaults = defaults if defaults is not None else cls()
     types_ = _field_types(cls)
@@ -295,7 +302,10 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "",
         default = getattr(defaults, f.name)
         flag = f"--{prefix}{f.name.replace('_', '-')}"
         if dataclasses.is_dataclass(tp):
-            add_arguments(parser, tp, prefix=f"{prefix}{f.name}.", defaults=default)
+            inner_text = None if default_text is None else (lambda name, outer=f.name: default_text(f"{outer}.{name}"))
+            add_arguments(parser, tp, prefix=f"{prefix}{f.name}.", defaults=default, default_text=inner_text,
+                          deprecated_prefix=None if deprecated_prefix is None else f"{deprecated_prefix}{f.name}.",
+                          alias_action=alias_action)
             continue
         origin = typing.get_origin(tp)
         optional = origin in (typing.Union, types.UnionType)
@@ -313,8 +323,17 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type, prefix: str = "",
         help_text = f.metadata.get("help", "")
         if choices:
             help_text += f" Choices: {', '.join(map(str, choices))}."
-        parser.add_argument(flag, dest=f"{prefix}{f.name}", default=argparse.SUPPRESS,
-                            help=f"{help_text} (default: {default!r})", **kwargs)
+        # argparse fills %(default_text)s from the action when it formats the help, so a text that
+        # costs work (building every preset's config) is made only for --help.
+        shown = "%(default_text)s" if default_text is not None else repr(default).replace("%", "%%")
+        action = parser.add_argument(flag, dest=f"{prefix}{f.name}", default=argparse.SUPPRESS,
+                                     help=f"{help_text} (default: {shown})", **kwargs)
+        if default_text is not None:
+            action.default_text = default_text(f.name)
+        if deprecated_prefix is not None:
+            old = f"--{deprecated_prefix}{f.name.replace('_', '-')}"
+            parser.add_argument(old, dest=f"{prefix}{f.name}", default=argparse.SUPPRESS, help=argparse.SUPPRESS,
+                                action=alias_action, deprecated=(old,), replacement=flag, **kwargs)
 
 
 def overrides_from_args(args: argparse.Namespace, cls: type, prefix: str = "") -> dict:

@@ -1,6 +1,6 @@
 """The ``dvfb`` command line, one module per command: tasks and agents (:mod:`~dvfb.cli.info`), pretrain,
-zeroshot, finetune, supervised (the reference), random-policy, demo, sweep, report, the analyses (analyze-value,
-analyze-exploration), video, dataset (export and relabel), export and push (:mod:`~dvfb.cli.share`).
+zeroshot, finetune, supervised (the reference), random-policy, demo, sweep, status, report, the analyses
+(analyze-value, analyze-exploration), video, dataset (export and relabel), export and push (:mod:`~dvfb.cli.share`).
 
 Every option of the typed run configuration is a flag (nested fields as ``--fb.hidden-dim``), shown
 with its default in ``--help``. Errors caused by input (unknown task, bad run directory, mismatched
@@ -15,14 +15,14 @@ import logging
 import sys
 
 from dvfb import __version__
-from dvfb.cli import (analyze, dataset, demo, finetune, info, pretrain, random_policy, report, share, supervised, sweep,
-                      video, zeroshot)
+from dvfb.cli import (analyze, dataset, demo, finetune, info, pretrain, random_policy, report, share, status,
+                      supervised, sweep, video, zeroshot)
 from dvfb.cli.common import Formatter, Parser, unknown_option_message
 from dvfb.errors import DvfbError, RunInterrupted
 
 # The order of `dvfb --help`.
-COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo, sweep, report, analyze, video, dataset,
-            share)
+COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo, sweep, status, report, analyze, video,
+            dataset, share)
 
 
 def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
@@ -76,6 +76,11 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
+        # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
+        from dvfb.training.progress import progress_interval
+
+        # A bad DVFB_PROGRESS_SECONDS is bad input: refused before the command creates anything.
+        progress_interval()
         return args.func(args)
     except RunInterrupted as exc:
         print(f"dvfb {args.command}: {exc}", file=sys.stderr)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, integer, protocol_overrides
+from dvfb.cli.common import (Formatter, add_protocol_arguments, add_snapshot_and_seed, integer, progress_flag,
+                             protocol_overrides, torch_threads_flag)
 
 def cmd_analyze_value(args: argparse.Namespace) -> int:
     """Skill value vs return (paper §4, Fig. 3b)."""
@@ -14,7 +15,7 @@ def cmd_analyze_value(args: argparse.Namespace) -> int:
     summary = analyze_value(args.run, args.task, skills=args.skills, episodes_per_skill=args.episodes_per_skill,
                             bins=args.bins, max_steps=args.max_steps, snapshot=args.snapshot, seed=args.seed,
                             inference=protocol_overrides(args, "inference"),
-                            overwrite=args.overwrite)
+                            overwrite=args.overwrite, torch_threads=args.torch_threads)
 
     def fmt(value):
         return "n/a" if value is None else f"{value:.3f}"
@@ -35,7 +36,8 @@ def cmd_analyze_exploration(args: argparse.Namespace) -> int:
 
     summary = analyze_exploration(args.run, skills=args.skills, repeats=args.repeats, steps=args.steps,
                                   actions=args.actions, cell_size=args.cell_size, snapshot=args.snapshot,
-                                  seed=args.seed, overwrite=args.overwrite)
+                                  seed=args.seed, overwrite=args.overwrite, progress=args.progress,
+                                  torch_threads=args.torch_threads)
     print(f"{summary['skills']} skills x {summary['repeats']} runs x {summary['steps']} steps "
           f"({summary['actions']} actions): coverage {summary['coverage_cells']} cells of "
           f"{summary['cell_size']:g} over ({', '.join(summary['coordinates'])}); per skill "
@@ -59,6 +61,7 @@ def register(sub, agent: str) -> None:
     p.add_argument("--max-steps", type=integer(1), default=None, help="cut episodes after this many steps (default: full)")
     add_snapshot_and_seed(p)
     p.add_argument("--overwrite", action="store_true", help="replace existing analysis files")
+    torch_threads_flag(p)
     add_protocol_arguments(p, "inference")
     p.set_defaults(func=cmd_analyze_value)
 
@@ -80,4 +83,6 @@ def register(sub, agent: str) -> None:
     p.add_argument("--cell-size", type=float, default=None, help="coverage grid cell size (default: per domain)")
     add_snapshot_and_seed(p)
     p.add_argument("--overwrite", action="store_true", help="replace existing analysis files")
+    progress_flag(p)
+    torch_threads_flag(p)
     p.set_defaults(func=cmd_analyze_exploration)

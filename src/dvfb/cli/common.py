@@ -4,10 +4,12 @@ config from flags, and the ``--inference.*`` / ``--finetune.*`` flags of the reg
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -92,25 +94,72 @@ def protocol_classes(kind: str, online: bool = False) -> list[type]:
     return classes
 
 
-def add_protocol_arguments(p: argparse.ArgumentParser, kind: str, online: bool = False) -> None:
-    """``--inference.*`` or ``--finetune.*`` flags: the union of the families' fields, each once.
+class PresetDefault:
+    """The default of an ``--inference.*`` / ``--finetune.*`` option in ``--help``: the value in the
+    run's config, which its preset chose (README.md, "Using it"), by preset. ``str()`` builds every
+    method's preset configs, so it runs only when the help is shown."""
+
+    def __init__(self, kind: str, name: str, fallback: Any):
+        self.kind, self.name, self.fallback = kind, name, fallback
+
+    def __str__(self) -> str:
+        # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
+        from dvfb.agents import agent_names
+        from dvfb.runs.presets import preset_config
+        from dvfb.runs.run_config import GENERIC_PRESETS
+
+        groups: dict[str, list[str]] = {}
+        for preset in GENERIC_PRESETS:
+            values = set()
+            for agent in agent_names():
+                section = getattr(preset_config(preset, agent), self.kind, None)
+                if section is not None and hasattr(section, self.name):
+                    values.add(repr(getattr(section, self.name)))
+            if not values:  # no run config carries it: the protocol's own default
+                return repr(self.fallback)
+            groups.setdefault(values.pop() if len(values) == 1 else "by method", []).append(preset)
+        if len(groups) == 1:
+            return f"the run's, {next(iter(groups))} at every preset"
+        return "the run's, by its preset: " + "; ".join(f"{' and '.join(presets)} {value}"
+                                                        for value, presets in groups.items())
+
+
+def add_protocol_arguments(p: argparse.ArgumentParser, kind: str, online: bool = False, prefix: str | None = None,
+                           deprecated_prefix: str | None = None) -> None:
+    """``--inference.*`` or ``--finetune.*`` flags: the union of the families' fields, each once,
+    named ``--<prefix>.*`` when ``prefix`` is given (``deprecated_prefix``: an older name that still
+    works, saying so on stderr).
 
     Which of them apply depends on the run's method; a flag its family lacks is an error naming
-    the family's config class when the run is loaded.
+    the family's config class when the run is loaded. The defaults shown are those a run's preset
+    gave its config; the options of a protocol that starts from its own config (``online``) show
+    that config's.
     """
+    prefix = prefix or kind
     seen: set[str] = set()
     for cls in protocol_classes(kind, online):
         skip = tuple(f.name for f in dataclasses.fields(cls) if f.name in seen)
         if len(skip) < len(dataclasses.fields(cls)):
-            group = p.add_argument_group(f"{kind} options ({cls.__name__})")
-            add_arguments(group, cls, prefix=f"{kind}.", skip=skip)
+            group = p.add_argument_group(f"{prefix} options ({cls.__name__})")
+            defaults = cls()
+            text = None if online else (lambda name, d=defaults: PresetDefault(kind, name, _dotted(d, name)))
+            add_arguments(group, cls, prefix=f"{prefix}.", skip=skip, default_text=text,
+                          deprecated_prefix=f"{deprecated_prefix}." if deprecated_prefix else None,
+                          alias_action=DeprecatedAlias)
         seen.update(f.name for f in dataclasses.fields(cls))
 
 
-def protocol_overrides(args: argparse.Namespace, kind: str, online: bool = False) -> dict:
+def _dotted(config: Any, name: str) -> Any:
+    for part in name.split("."):
+        config = getattr(config, part)
+    return config
+
+
+def protocol_overrides(args: argparse.Namespace, kind: str, online: bool = False, prefix: str | None = None) -> dict:
+    """The ``--<prefix>.*`` options given (``prefix``: ``kind`` unless named otherwise)."""
     out: dict = {}
     for cls in protocol_classes(kind, online):
-        out.update(overrides_from_args(args, cls, prefix=f"{kind}."))
+        out.update(overrides_from_args(args, cls, prefix=f"{prefix or kind}."))
     return out
 
 
@@ -170,6 +219,47 @@ def member_run_dirs(config, run_dir: str | None, seeds: list[int]) -> list[Path]
     return [Path(run_dir.replace(SEED_PLACEHOLDER, str(seed))) for seed in seeds]
 
 
+def eval_dir_flag(p: argparse.ArgumentParser) -> None:
+    """``--eval-dir`` of the commands that evaluate an exported model (docs/sharing.md, "Evaluate")."""
+    p.add_argument("--eval-dir", default=None,
+                   help="for an exported model: the run directory it is evaluated in, made from it the first time "
+                        "and reused after; results go there, the export's own files are never written (default: "
+                        "EXPORT.eval beside the exported model)")
+
+
+@contextlib.contextmanager
+def evaluated(paths: str | list[str], eval_dir: str | None, command: list[str] | None):
+    """What a command evaluates, as ``(run directories, inference data, exported)``: ``paths`` as
+    they are, or one exported model's evaluation directory with its inference samples
+    (:func:`~dvfb.workflows.resources.run_or_export`)."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
+    from dvfb.runs.export import is_export
+    from dvfb.workflows.resources import run_or_export
+
+    paths = [paths] if isinstance(paths, str) else list(paths)
+    if len(paths) == 1:
+        with run_or_export(paths[0], eval_dir, command) as (run, data):
+            yield [str(run)], data, is_export(paths[0])
+        return
+    exported = next((path for path in paths if is_export(path)), None)
+    if exported is not None:
+        raise ConfigError(f"{exported} is an exported model: evaluate exported models one at a time")
+    if eval_dir is not None:
+        raise ConfigError("--eval-dir is where an exported model is evaluated; these are run directories")
+    yield paths, None, False
+
+
+def torch_threads_flag(p: argparse.ArgumentParser, on_run: bool = True) -> None:
+    """``--torch-threads`` of a command that computes, the same flag as pre-training's (README.md,
+    "Threads and progress"); ``on_run``: the command uses a pre-training run, whose own setting is
+    its default."""
+    default = ("the run's own --torch-threads when it set one, at most the CPUs this process may use; else as 0"
+               if on_run else "0")
+    p.add_argument("--torch-threads", dest="torch_threads", type=integer(0), default=None if on_run else 0,
+                   help="torch threads of this command; 0: OMP_NUM_THREADS when set, else half the CPUs this "
+                        f"process may use (its affinity and cgroup quota), at least one (default: {default})")
+
+
 def progress_flag(p: argparse.ArgumentParser) -> None:
     """--progress / --no-progress of the commands with a progress bar."""
     p.add_argument("--progress", dest="progress", action="store_true", default=None,
@@ -179,14 +269,16 @@ def progress_flag(p: argparse.ArgumentParser) -> None:
 
 class DeprecatedAlias(argparse.Action):
     """A flag with an old name that still works: the old name stores the value and says, in one
-    line on stderr, which name to use (``deprecated``: the old option strings)."""
+    line on stderr, which name to use (``deprecated``: the old option strings; ``replacement``: the
+    name to use, when it is another action's, the old name hidden from the help)."""
 
-    def __init__(self, option_strings, dest, deprecated: tuple[str, ...] = (), **kwargs):
+    def __init__(self, option_strings, dest, deprecated: tuple[str, ...] = (), replacement: str | None = None,
+                 **kwargs):
         super().__init__(option_strings, dest, **kwargs)
-        self.deprecated = deprecated
+        self.deprecated, self.replacement = deprecated, replacement
 
     def __call__(self, parser, namespace, values, option_string=None):
         if option_string in self.deprecated:
-            current = next(o for o in self.option_strings if o not in self.deprecated)
+            current = self.replacement or next(o for o in self.option_strings if o not in self.deprecated)
             print(f"{parser.prog}: note: {option_string} is deprecated; use {current}", file=sys.stderr)
         setattr(namespace, self.dest, values)

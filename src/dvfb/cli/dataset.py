@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from dvfb.cli.common import Formatter, progress_flag
+from dvfb.cli.common import Formatter, progress_flag, torch_threads_flag
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -14,7 +14,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     from dvfb.data.datasets import EPISODES_DIR, describe
     from dvfb.training.progress import progress_bars
     from dvfb.workflows.datasets import default_export_dir, export_run
+    from dvfb.workflows.resources import use_threads
 
+    use_threads(args.torch_threads)
     info = export_run(args.run, args.out, progress=progress_bars(args.progress))
     out = Path(args.out) if args.out else default_export_dir(args.run)
     print(describe(info, out) + f"; episode files in {out / EPISODES_DIR}")
@@ -27,7 +29,9 @@ def cmd_relabel(args: argparse.Namespace) -> int:
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.data.datasets import default_relabel_dir, describe, relabel
     from dvfb.training.progress import progress_bars
+    from dvfb.workflows.resources import use_threads
 
+    use_threads(args.torch_threads)
     info = relabel(args.dataset, args.task, args.out, progress=progress_bars(args.progress))
     print(describe(info, args.out or default_relabel_dir(Path(args.dataset), args.task)))
     return 0
@@ -49,6 +53,7 @@ def register(sub, agent: str) -> None:
     export.add_argument("run", help="pre-training run directory (pre-trained with --replay.record-physics true)")
     export.add_argument("--out", default=None, help="output directory (default: RUN/dataset)")
     progress_flag(export)
+    torch_threads_flag(export, on_run=False)
     export.set_defaults(func=cmd_export)
     relabel = commands.add_parser(
         "relabel", help="recompute a dataset's rewards for another task of its domain", formatter_class=Formatter,
@@ -59,4 +64,5 @@ def register(sub, agent: str) -> None:
     relabel.add_argument("--task", required=True, help="a task of the dataset's domain (see `dvfb tasks`)")
     relabel.add_argument("--out", default=None, help="output directory (default: DATASET_<task>, beside DATASET)")
     progress_flag(relabel)
+    torch_threads_flag(relabel, on_run=False)
     relabel.set_defaults(func=cmd_relabel)

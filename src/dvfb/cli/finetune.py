@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from dvfb.cli.common import Formatter, add_protocol_arguments, add_snapshot_and_seed, progress_flag, protocol_overrides
+from dvfb.cli.common import (Formatter, add_protocol_arguments, add_snapshot_and_seed, progress_flag,
+                             protocol_overrides, torch_threads_flag)
 from dvfb.config import add_arguments, overrides_from_args
 
 def cmd_finetune(args: argparse.Namespace) -> int:
@@ -16,7 +17,7 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     options = dict(snapshot=args.snapshot, seed=args.seed, name=args.name,
                    inference=protocol_overrides(args, "inference"), finetune=protocol_overrides(args, "finetune"),
                    resume=args.resume, overwrite=args.overwrite, progress=args.progress, protocol=args.protocol,
-                   log=overrides_from_args(args, LogConfig, prefix="log."))
+                   log=overrides_from_args(args, LogConfig, prefix="log."), torch_threads=args.torch_threads)
     many = len(args.run) > 1
     runs = finetune(args.run if many else args.run[0], args.task, **options)
     runs = runs if many else [runs]
@@ -36,7 +37,9 @@ def register(sub, agent: str) -> None:
                        description="Fine-tuning by the method family's protocol: dual-value (a fresh task critic, "
                                    "reward mapping and the skill value) for DVFB/FB, URLB's (pre-trained actor, "
                                    "fresh critic with the pre-trained trunk, extrinsic n-step reward, the "
-                                   "selected skill) for the DDPG baselines. Defaults come from the run's config.")
+                                   "selected skill) for the DDPG baselines. Defaults come from the run's config, "
+                                   "which its preset made (shown by preset below); another fine-tuner chosen with "
+                                   "--protocol starts from its own config's defaults.")
     p.add_argument("run", nargs="+", help="pre-training run directory; several: the members of a group (one method "
                                           "and configuration, seeds aside), fine-tuned together in lockstep with "
                                           "batched updates and actions (docs/members.md)")
@@ -50,6 +53,7 @@ def register(sub, agent: str) -> None:
     p.add_argument("--resume", action="store_true", help="continue from the latest fine-tuning checkpoint")
     p.add_argument("--overwrite", action="store_true", help="replace an existing fine-tuning run")
     progress_flag(p)
+    torch_threads_flag(p)
     add_protocol_arguments(p, "inference")
     add_protocol_arguments(p, "finetune")
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from dvfb.cli.common import integer, seed_value
+from dvfb.cli.common import integer, seed_value, torch_threads_flag
 from dvfb.errors import ConfigError
 
 
@@ -14,8 +14,10 @@ def cmd_random_policy(args: argparse.Namespace) -> int:
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb import envs
     from dvfb.runs import check_writable, write_json_atomic
+    from dvfb.workflows.resources import use_threads
     from dvfb.workflows.zeroshot import random_policy_evaluation
 
+    use_threads(args.torch_threads)
     envs.check_domain(args.domain)
     output = Path(args.output) if args.output else None
     if output is not None and output.is_dir():
@@ -45,4 +47,5 @@ def register(sub, agent: str) -> None:
     p.add_argument("--seed", type=seed_value, default=0, help="(default: %(default)s)")
     p.add_argument("--output", default=None, help="write the returns to this JSON file")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    torch_threads_flag(p, on_run=False)
     p.set_defaults(func=cmd_random_policy)

@@ -47,4 +47,4 @@ from dvfb.runs.checkpoints import (  # noqa: F401
     save_snapshot,
 )
 from dvfb.runs.directory import CONFIG_FILE, LOCK_FILE, META_FILE, RunDir, RunLock, check_writable  # noqa: F401
-from dvfb.runs.metrics import MetricsLogger, last_metric_record, read_metrics  # noqa: F401
+from dvfb.runs.metrics import MetricsLogger, last_metric_record, read_metrics, recent_rate  # noqa: F401

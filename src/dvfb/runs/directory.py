@@ -186,6 +186,19 @@ class RunDir:
         """The contents of meta.json."""
         return read_json(self.meta_path, RunDirError)
 
+    def record_resume(self, command: Sequence[str] | None, step: int) -> None:
+        """Add a resume to meta.json's ``resumes``: the command that continued the run, the step it
+        continued from, when, and the dvfb version and torch threads it ran with (the model card's
+        "Made with" lists them after the first command)."""
+        meta = self.read_meta() if self.meta_path.is_file() else {}
+        if not isinstance(meta, dict):
+            raise RunDirError(f"{self.meta_path} is corrupt: expected a JSON object")
+        meta.setdefault("resumes", []).append({
+            "command": list(command) if command is not None else None, "step": int(step),
+            "resumed": datetime.now(timezone.utc).isoformat(timespec="seconds"), "dvfb_version": __version__,
+            "torch_threads": torch.get_num_threads()})
+        write_json_atomic(self.meta_path, meta)
+
 
 class RunLock:
     """One writer per run directory: an exclusive OS lock (``flock``) on ``<run>/.lock``.

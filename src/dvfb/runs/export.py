@@ -15,6 +15,7 @@ loaded, and :func:`load_export` reads it back into the same :class:`~dvfb.agents
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 import shlex
@@ -33,7 +34,7 @@ from dvfb.data.buffer import PHYSICS_COLUMN
 from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.files import read_json, write_json_atomic
 from dvfb.runs.directory import EXPORT_FORMAT, check_writable, is_export_config
-from dvfb.runs.layout import PretrainRun
+from dvfb.runs.layout import PRETRAIN, PretrainRun, run_kind
 from dvfb.runs.run_config import PretrainConfig, run_config_from_dict
 
 EXPORT_VERSION = 1
@@ -103,59 +104,116 @@ def inference_samples(run: PretrainRun, size: int, seed: int) -> dict[str, np.nd
     chosen = np.sort(np.random.default_rng(seed).choice(n, size=min(size, n), replace=False))
     index = torch.as_tensor(chosen)
     arrays = {"obs": data.obs[index].cpu().numpy(), "next_obs": data.next_obs[index].cpu().numpy()}
-    if PHYSICS_COLUMN in data.columns:
-        arrays[PHYSICS_COLUMN] = data.columns[PHYSICS_COLUMN][index].cpu().numpy()
+    for column in (PHYSICS_COLUMN, f"next_{PHYSICS_COLUMN}"):  # of obs, and of next_obs (a task's reward)
+        if column in data.columns:
+            arrays[column] = data.columns[column][index].cpu().numpy()
     return arrays
 
 
-def _metrics(zero_shot: dict[str, float]) -> str:
-    lines = []
+def evaluation_budget(result) -> dict:
+    """What a zero-shot number cost (docs/sharing.md, "Model card"): evaluation episodes, the task's
+    reward-labelled environment steps its skill was found from, and where the skill came from."""
+    source = result.skill_source or "rewards"
+    inference = result.inference if isinstance(result.inference, dict) else {}
+    steps = inference.get("steps", 0) if source == "rewards" else 0
+    budget = {"eval_episodes": result.eval_episodes, "labelled_steps": int(steps or 0), "skill_source": source,
+              "std_return": result.std_return}
+    if result.success_rate is not None:
+        budget["success_rate"] = result.success_rate
+    return budget
+
+
+def _yaml(value) -> str:
+    """A YAML scalar: JSON's form of numbers, booleans and strings (a double-quoted JSON string is
+    a YAML string) needs no YAML library at run time."""
+    return json.dumps(value)
+
+
+def _model_index(name: str, zero_shot: dict[str, float], budgets: dict[str, dict]) -> list[str]:
+    """The card's ``model-index`` in the Hugging Face hub's results format: one result per task,
+    whose metrics carry the evaluation budget in ``args``; self-reported (``verified: false``)."""
+    lines = ["model-index:", f"- name: {_yaml(name)}", "  results:" + ("" if zero_shot else " []")]
     for task, value in sorted(zero_shot.items()):
-        lines += [f"      - task: {{type: reinforcement-learning, name: zero-shot {task}}}",
-                  f"        dataset: {{type: dm_control, name: {task}}}",
-                  f"        metrics: [{{type: mean_return, name: zero-shot episode return, value: {value:.1f}}}]"]
-    return "\n".join(lines)
+        budget = budgets.get(task, {})
+        args = {key: budget[key] for key in ("eval_episodes", "labelled_steps", "skill_source") if key in budget}
+        metrics = [("mean_reward", "zero-shot mean episode return", value)]
+        if budget.get("success_rate") is not None:
+            metrics.append(("success_rate", "zero-shot success rate", budget["success_rate"]))
+        lines += ["  - task:", "      type: reinforcement-learning", f"      name: {_yaml('zero-shot ' + task)}",
+                  "    dataset:", f"      type: {_yaml('dvfb/' + task)}", f"      name: {_yaml(task)}", "    metrics:"]
+        for kind, label, number in metrics:
+            lines += [f"    - type: {kind}", f"      value: {_yaml(round(float(number), 2))}",
+                      f"      name: {_yaml(label)}"]
+            if args:
+                lines.append("      args:")
+                lines += [f"        {key}: {_yaml(arg)}" for key, arg in args.items()]
+            lines.append("      verified: false")
+    return lines
+
+
+def _budget_text(budget: dict) -> str:
+    if not budget:
+        return "not recorded"
+    episodes = budget.get("eval_episodes")
+    source = budget.get("skill_source")
+    skill = (f"{budget['labelled_steps']:,} reward-labelled steps" if source == "rewards" else
+             "no skill" if source == "none" else f"skill from {source}")
+    return f"{episodes} episodes, {skill}"
 
 
 def model_card(info: dict) -> str:
-    """The model card: YAML metadata the hub reads, then what the model is and how to use it."""
+    """The model card: YAML metadata the hub reads (its ``model-index`` results format), then what
+    the model is, every command that made it (the first and each resume) and how to use it; every
+    zero-shot number stands beside its budget."""
     agent, domain, frames, preset = info["agent"], info["domain"], info["frames"], info["preset"]
     name = f"{agent}_{domain}_s{info['seed']}"
     zero_shot = info.get("zero_shot", {})
+    budgets = info.get("zero_shot_budget") or {}
     metadata = ["---", "library_name: dvfb", "pipeline_tag: reinforcement-learning",
                 f"tags: [reinforcement-learning, unsupervised-reinforcement-learning, zero-shot-reinforcement-learning, "
                 f"dvfb, {agent}, dm_control, {domain}]",
-                "model-index:", f"  - name: {name}", "    results:" + ("" if zero_shot else " []")]
-    if zero_shot:
-        metadata.append(_metrics(zero_shot))
-    metadata.append("---")
+                *_model_index(name, zero_shot, budgets), "---"]
     scale = ("the paper's scale (2M frames, paper preset)" if preset == "paper" and frames >= 2_000_000 else
              f"{frames:,} frames at the `{preset}` preset, below the paper's 2M frames at the paper preset: its "
              "scores are not comparable with the paper's tables")
-    results = ("\n".join(f"| {task} | {value:.1f} |" for task, value in sorted(zero_shot.items()))
-               if zero_shot else "")
+    rows = []
+    for task, value in sorted(zero_shot.items()):
+        budget = budgets.get(task, {})
+        std = budget.get("std_return")
+        rows.append(f"| {task} | {value:.1f}" + (f" ± {std:.1f}" if std is not None else "")
+                    + f" | {_budget_text(budget)} |")
+    commands = info.get("commands") or ([info["command"]] if info.get("command") else [])
+    made = ["Made with" + (" (the first command, then each resume):" if len(commands) > 1 else ":"), "", "```bash",
+            *(commands or ["(command not recorded)"]), "```"]
     body = [f"# {name}", "",
             f"A `{agent}` agent pre-trained without rewards on `{domain}` for {frames:,} frames (seed "
             f"{info['seed']}, `{preset}` preset) with dvfb {info['dvfb_version']}.", "",
-            "Made with:", "", "```bash", info.get("command") or "(command not recorded)", "```", "",
+            *made, "",
             "## Use", "", "```python", "import dvfb", "", "model = dvfb.load(\"PATH/TO/THIS/DIRECTORY\")",
             "z = model.infer_z(reward_fn=lambda next_obs: next_obs[:, 0])  # or goal=..., or samples",
             "action = model.act(obs, z)", "```", "",
+            "Or from the command line, results in `PATH/TO/THIS/DIRECTORY.eval/` (this directory is only read): "
+            "`dvfb zeroshot PATH/TO/THIS/DIRECTORY --task TASK`, `dvfb video PATH/TO/THIS/DIRECTORY --task TASK`.", "",
             "`model.safetensors` holds the inference weights only (no optimiser, no pickle); `config.json` says "
             "what they are." + (" `inference_data.npz` holds reward-inference samples from the pre-training "
                                 "replay." if info.get("inference_data") else ""), "",
             "## Zero-shot results", "",
-            (f"Mean episode return of the zero-shot policy (dvfb's docs/methods.md), {scale}.\n\n| task | return |\n"
-             f"|---|---:|\n{results}" if zero_shot else "None recorded in the run (`dvfb zeroshot RUN --task T` "
-                                                         "before exporting adds them)."), ""]
+            (f"Mean episode return (± std over the episodes) of the zero-shot policy (dvfb's docs/methods.md), "
+             f"{scale}. Each beside its budget: the mean-action evaluation episodes, and the reward-labelled "
+             f"steps of the task its skill was found from.\n\n| task | return | budget |\n|---|---:|---|\n"
+             + "\n".join(rows) if zero_shot else "None recorded in the run (`dvfb zeroshot RUN --task T` "
+                                                  "before exporting adds them)."), ""]
     return "\n".join(metadata + body)
 
 
 def write_export(out: str | os.PathLike, model: Model, config: PretrainConfig, *, frames: int,
                  zero_shot: dict[str, float] | None = None, command: str | None = None,
-                 inference_data: dict[str, np.ndarray] | None = None, overwrite: bool = False) -> Path:
+                 inference_data: dict[str, np.ndarray] | None = None, overwrite: bool = False,
+                 commands: list[str] | None = None, zero_shot_budget: dict[str, dict] | None = None) -> Path:
     """Write ``model`` (of run config ``config``, after ``frames`` frames) as an exported model.
-    ``out`` must be absent or empty (or, with ``overwrite``, an exported model)."""
+    ``out`` must be absent or empty (or, with ``overwrite``, an exported model). ``commands``: every
+    command that made the run (``command``, the first, by default); ``zero_shot_budget``: per task,
+    what each zero-shot number cost (:func:`evaluation_budget`)."""
     from safetensors import SafetensorError
     from safetensors.torch import save_file
 
@@ -167,7 +225,9 @@ def write_export(out: str | os.PathLike, model: Model, config: PretrainConfig, *
             "seed": config.seed, "preset": config.preset, "skill_dim": model.skill_dim,
             "observation_space": {"shape": [model.obs_dim], "dtype": "float32"},
             "action_space": {"shape": [model.action_dim], "dtype": "float32", "low": -1.0, "high": 1.0},
-            "zero_shot": dict(sorted((zero_shot or {}).items())), "command": command,
+            "zero_shot": dict(sorted((zero_shot or {}).items())),
+            "zero_shot_budget": dict(sorted((zero_shot_budget or {}).items())), "command": command,
+            "commands": list(commands) if commands else ([command] if command else []),
             "inference_data": INFERENCE_FILE if inference_data is not None else None,
             "run_config": to_dict(config)}
     # The topmost folder this call creates (a nested --out creates its parents too): what a failure
@@ -222,17 +282,27 @@ def export_model(run: PretrainRun, out: str | os.PathLike, *, snapshot: int | No
         raise ConfigError(f"--inference-size {inference_size} is out of range: it must be >= 1")
     _check_out(Path(out), overwrite)  # before the model is read
     model, frames = load_model(run, snapshot, "cpu")
-    zero_shot = ({result.task: result.mean_return for _, result in run.zeroshot_results()}
-                 if frames == run.snapshot_frames()[-1] else {})
+    results = [result for _, result in run.zeroshot_results()] if frames == run.snapshot_frames()[-1] else []
     data = inference_samples(run, inference_size, run.config.seed) if with_inference_data else None
+    commands = run_commands(run)
+    return write_export(out, model, run.config, frames=frames,
+                        zero_shot={result.task: result.mean_return for result in results},
+                        zero_shot_budget={result.task: evaluation_budget(result) for result in results},
+                        command=commands[0] if commands else None, commands=commands, inference_data=data,
+                        overwrite=overwrite)
+
+
+def run_commands(run: PretrainRun) -> list[str]:
+    """The commands that made a run, as shell lines: the first, then each resume (meta.json)."""
     try:
-        command = read_json(run.meta_path).get("command")
-    except (RunDirError, AttributeError):
-        command = None
-    if isinstance(command, list) and command:
-        command = " ".join(["dvfb", *map(shlex.quote, command[1:])])  # argv[0] is the entry point's path
-    return write_export(out, model, run.config, frames=frames, zero_shot=zero_shot, command=command,
-                        inference_data=data, overwrite=overwrite)
+        meta = read_json(run.meta_path)
+    except RunDirError:
+        return []
+    if not isinstance(meta, dict):
+        return []
+    argvs = [meta.get("command")] + [r.get("command") for r in meta.get("resumes") or [] if isinstance(r, dict)]
+    # argv[0] is the entry point's path: shown as dvfb.
+    return [" ".join(["dvfb", *map(shlex.quote, argv[1:])]) for argv in argvs if isinstance(argv, list) and argv]
 
 
 def load_export(path: str | os.PathLike, device: str | torch.device = "cpu") -> Export:
@@ -320,17 +390,83 @@ def unpack_export(path: str | os.PathLike, run_dir: str | os.PathLike, overwrite
     """A run directory made from an exported model: its run config and one snapshot, of the
     export's frames (no replay, no checkpoint), which ``dvfb zeroshot``, ``finetune`` and ``video``
     take as they take a finished run's (``dvfb demo`` unpacks its bundled agent so)."""
+    return _unpacked(load_export(path, "cpu"), run_dir, overwrite, command)
+
+
+def _unpacked(export: Export, run_dir: str | os.PathLike, overwrite: bool, command: list[str] | None) -> PretrainRun:
     from dvfb.runs.checkpoints import save_snapshot
     from dvfb.runs.layout import snapshot_name
     from dvfb.runs.snapshots import snapshot_state
 
-    export = load_export(path, "cpu")
     run = PretrainRun.create(run_dir, export.config, overwrite=overwrite, command=command)
     modules = {name: module.state_dict() for name, module in export.model.snapshot_modules().items()}
     frames = int(export.info["frames"])
     save_snapshot(run, snapshot_state(export.model, export.config, frames, modules, export.model.statistics),
                   snapshot_name(frames))
     return run
+
+
+EVALUATION_SUFFIX = ".eval"
+# What an evaluation directory holds before anything was evaluated in it: removed again when the
+# command that made it fails.
+_UNPACKED = {"config.json", "meta.json", "snapshots", "exported_from.json", ".lock"}
+
+
+def default_evaluation_dir(path: str | os.PathLike) -> Path:
+    """Where an exported model is evaluated unless told otherwise: ``<DIR>.eval`` beside it."""
+    path = Path(path).resolve()
+    return path.with_name(path.name + EVALUATION_SUFFIX)
+
+
+def _digest(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def evaluation_run(path: str | os.PathLike, eval_dir: str | os.PathLike | None = None,
+                   command: list[str] | None = None) -> tuple[PretrainRun, Export, bool]:
+    """The run directory in which the exported model at ``path`` is evaluated (docs/sharing.md,
+    "Evaluate"), its :class:`Export`, and whether this call made the directory.
+
+    ``eval_dir`` (default :func:`default_evaluation_dir`) is made from the export the first time (its
+    run config and one snapshot, as :func:`unpack_export` makes them, and ``exported_from.json``
+    with the export's path and the SHA-256 of its weights), and reused afterwards while it holds
+    the same weights; a directory that is something else is refused. The export's own files are
+    only read.
+    """
+    path = Path(path)
+    export = load_export(path, "cpu")
+    record = {"export": str(path.resolve()), "model_sha256": _digest(path / MODEL_FILE), "agent": export.config.agent,
+              "domain": export.config.domain, "frames": int(export.info["frames"])}
+    out = Path(eval_dir) if eval_dir is not None else default_evaluation_dir(path)
+    if out.resolve() == path.resolve():
+        raise ConfigError(f"--eval-dir {out} is the exported model itself; its files are never written")
+    if out.is_dir() and any(child.name != ".lock" for child in out.iterdir()):
+        if run_kind(out) != PRETRAIN:
+            raise RunDirError(f"{out} exists and is not the evaluation directory of an exported model; pass another "
+                              "--eval-dir")
+        run = PretrainRun.open(out)
+        made = run.exported_from()
+        if made is None:
+            raise RunDirError(f"{out} is a run directory that was trained, not made from an exported model; pass "
+                              "another --eval-dir")
+        if made.get("model_sha256") != record["model_sha256"]:
+            raise RunDirError(f"{out} holds the evaluation of another exported model ({made.get('export')}); pass "
+                              "another --eval-dir, or remove it")
+        return run, export, False
+    check_writable(out)
+    run = _unpacked(export, out, False, command)
+    run.write_exported_from(record)
+    return run, export, True
+
+
+def remove_evaluation_run(run: PretrainRun) -> None:
+    """Remove an evaluation directory that a failed command made, when nothing was evaluated in it."""
+    if run.path.is_dir() and {child.name for child in run.path.iterdir()} <= _UNPACKED:
+        shutil.rmtree(run.path, ignore_errors=True)
 
 
 def describe_export(path: Path) -> str:

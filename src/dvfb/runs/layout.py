@@ -10,6 +10,8 @@ A pre-training run (:class:`PretrainRun`)::
     RUN/snapshots/snapshot_<F>.pt   the agent after F frames (dvfb.runs.snapshots)
     RUN/pretrain_summary.json       written when it finishes (PretrainSummary)
     RUN/trained_on.json             an offline run's dataset: its path, files and content digests
+    RUN/exported_from.json          a run made to evaluate an exported model: which one (its path
+                                    and the digest of its weights, docs/sharing.md, "Evaluate")
     RUN/zeroshot/<task>.json        a zero-shot result of the final snapshot; <task>@<F>.json of
                                     an earlier one (ZeroShotResult)
     RUN/finetune/<name>/            its fine-tuning runs
@@ -79,6 +81,16 @@ def run_kind(path: str | os.PathLike) -> str | None:
     return kind_from_config(config)
 
 
+def _optional_record(path: Path) -> dict | None:
+    """A JSON object a run may have (None when the file is not there); anything else is corrupt."""
+    if not path.is_file():
+        return None
+    data = read_json(path, RunDirError)
+    if not isinstance(data, dict):
+        raise RunDirError(f"{path} is corrupt: not a JSON object")
+    return data
+
+
 class PretrainRun(RunDir):
     """A pre-training run directory and its config (layout in the module docstring)."""
 
@@ -133,15 +145,23 @@ class PretrainRun(RunDir):
     def trained_on(self) -> dict | None:
         """The fingerprint of the dataset an offline run trained on (``DatasetInfo.fingerprint``);
         None for an online run, or one made before dvfb recorded it."""
-        if not self.trained_on_path.is_file():
-            return None
-        data = read_json(self.trained_on_path, RunDirError)
-        if not isinstance(data, dict):
-            raise RunDirError(f"{self.trained_on_path} is corrupt: not a JSON object")
-        return data
+        return _optional_record(self.trained_on_path)
 
     def write_trained_on(self, fingerprint: dict) -> None:
         write_json_atomic(self.trained_on_path, fingerprint)
+
+    # An exported model's evaluation ------------------------------------------------------------------
+    @property
+    def exported_from_path(self) -> Path:
+        return self.path / "exported_from.json"
+
+    def exported_from(self) -> dict | None:
+        """Which exported model this run was made from to evaluate it (docs/sharing.md, "Evaluate");
+        None for a run that was trained."""
+        return _optional_record(self.exported_from_path)
+
+    def write_exported_from(self, record: dict) -> None:
+        write_json_atomic(self.exported_from_path, record)
 
     # Snapshots -----------------------------------------------------------------------------------
     def snapshot_frames(self) -> list[int]:

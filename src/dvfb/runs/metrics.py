@@ -154,6 +154,17 @@ def read_metrics(run: RunDir | str | os.PathLike, prefix: str = "train") -> list
     return records
 
 
+def recent_rate(record: dict) -> float | None:
+    """The frames per second of a pre-training's ``train`` record: ``fps_recent``, the rate since
+    the record before it, or in the records of older versions ``fps``, the average since the process
+    started (README.md, "Threads and progress"); None when it has neither or the rate is not positive."""
+    for key in ("fps_recent", "fps"):
+        value = record.get(key)
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0:
+            return float(value)
+    return None
+
+
 def last_metric_record(run: RunDir | str | os.PathLike, prefix: str = "train") -> dict | None:
     """The newest whole record of ``metrics/<prefix>.jsonl``, None when there is none. For progress
     reports: any line that is not a whole record (torn by a crash or a full disk, with or without

@@ -53,7 +53,9 @@ class PretrainConfig:
     frames: int = param(2_000_000, "Pre-training environment steps.", at_least=1)
     seed: int = seed_param(0, "Seed of the environment, the networks and the sampling.")
     device: str = param("auto", "Torch device: auto picks cuda when available.", DEVICES)
-    torch_threads: int = param(0, "torch.set_num_threads; 0 keeps torch's default.", at_least=0)
+    torch_threads: int = param(0, "Torch threads of the run's process; 0: OMP_NUM_THREADS when set, else half the CPUs "
+                               "this process may use (its affinity and cgroup quota), at least one (README.md, "
+                               "\"Threads and progress\").", at_least=0)
     processes: int = param(1, "Split a group's members (--seeds) over this many processes (at most one per "
                            "member), each training its share as a group of its own; they share --torch-threads (0: "
                            "the CPUs) equally, at least one thread each (docs/members.md).", at_least=1)

@@ -14,7 +14,7 @@ from dvfb.analysis.common import AnalysisError
 from dvfb.analysis.report import make_report
 from dvfb.config import format_value
 from dvfb.errors import ConfigError, DvfbError
-from dvfb.runs import LOCK_FILE, RunLock, last_metric_record, read_json, write_json_atomic
+from dvfb.runs import LOCK_FILE, RunLock, last_metric_record, read_json, recent_rate, write_json_atomic
 from dvfb.sweep import spec
 from dvfb.runs.machine import cores
 from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, _sbatch_options, alive_jobs
@@ -274,9 +274,9 @@ def cell_status(sweep: SweepDir, config: SweepConfig, cell: Cell, jobs: dict[str
         state = "running"
         running = [name for name, alive in live.items() if alive == "running"]
         note = ", ".join(running)
-        fps = record.get("fps")
-        if "pretrain" in running and fps:
-            eta = _format_seconds((target - frames) / fps)
+        rate = recent_rate(record)  # of the last logging interval: an average since the start hides a slowdown
+        if "pretrain" in running and rate:
+            eta = _format_seconds((target - frames) / rate)
     elif failed:
         state = "failed"
         first = states[failed[0].name]

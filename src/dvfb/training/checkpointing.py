@@ -4,12 +4,13 @@ and the one line a failure ends with (docs/methods.md, "Training loop")."""
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Callable
 
 from dvfb.errors import NonFiniteLossError, RunDirError
 from dvfb.training.metrics import MetricWindow
-from dvfb.training.signals import StopSignals, interrupted
+from dvfb.training.signals import StopSignals, interrupted, run_directories
 
 
 def checkpoint_note(last_checkpoint: int | None) -> str:
@@ -20,17 +21,18 @@ def checkpoint_note(last_checkpoint: int | None) -> str:
 
 
 @contextlib.contextmanager
-def reported_failures(what: str, run_path: Path, last_checkpoint: Callable[[], int | None]):
+def reported_failures(what: str, run_path: Path | Sequence[Path], last_checkpoint: Callable[[], int | None]):
     """Around a training loop: a non-finite loss or a disk error (full, read-only, permissions)
-    becomes one line that says what stopped and which checkpoint is intact."""
+    becomes one line that says what stopped and which checkpoint is intact (``run_path``: the run
+    directory, or a group's member directories)."""
     try:
         yield
     except NonFiniteLossError as exc:
         raise NonFiniteLossError(f"{exc}; {what} stopped, {checkpoint_note(last_checkpoint())}") from exc
     except OSError as exc:
         where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
-        raise RunDirError(f"cannot write to {run_path}: {exc.strerror or exc}{where}; {what} stopped, "
-                          f"{checkpoint_note(last_checkpoint())}") from exc
+        raise RunDirError(f"cannot write to {run_directories(run_path)}: {exc.strerror or exc}{where}; {what} "
+                          f"stopped, {checkpoint_note(last_checkpoint())}") from exc
 
 
 class ResumeCheckpoints:
@@ -49,7 +51,7 @@ class ResumeCheckpoints:
     """
 
     def __init__(self, save: Callable[[bool], None], window: MetricWindow, every: int, total: int, what: str,
-                 run_path: Path, last: int | None = None):
+                 run_path: Path | Sequence[Path], last: int | None = None):
         self.save, self.window, self.every, self.total = save, window, every, total
         self.what, self.run_path, self.last = what, run_path, last
         self.stop = StopSignals()

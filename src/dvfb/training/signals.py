@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import signal
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 
 from dvfb.errors import RunInterrupted
@@ -45,7 +46,16 @@ class StopSignals:
         return signal.Signals(self.received).name if self.received is not None else ""
 
 
-def interrupted(stop: StopSignals, what: str, step: int, total: int, run_path: Path) -> RunInterrupted:
-    """The error a loop raises after checkpointing on a signal."""
+def run_directories(run_paths: Path | Sequence[Path]) -> str:
+    """``run DIR``, or for a group's members ``runs DIR, DIR, ...``: where a message says the loop wrote."""
+    paths = [run_paths] if isinstance(run_paths, (str, Path)) else list(run_paths)
+    return f"run {paths[0]}" if len(paths) == 1 else "runs " + ", ".join(str(p) for p in paths)
+
+
+def interrupted(stop: StopSignals, what: str, step: int, total: int,
+                run_paths: Path | Sequence[Path]) -> RunInterrupted:
+    """The error a loop raises after checkpointing on a signal; it names every run directory the
+    loop wrote (a group's members: each one, not the folder they share)."""
     return RunInterrupted(f"{stop.name} received: {what} stopped at step {step} of {total} with a checkpoint; "
-                          f"continue with the same command plus --resume (run {run_path})", stop.received)
+                          f"continue with the same command plus --resume ({run_directories(run_paths)})",
+                          stop.received)

@@ -42,6 +42,8 @@ from dvfb.analysis.statistics import coverage
 from dvfb.runs import check_writable, write_json_atomic
 from dvfb.runs.snapshots import load_model
 from dvfb.training.evaluation import run_episode
+from dvfb.training.observers import ProgressCount
+from dvfb.training.progress import Progress
 from dvfb.training.rollout import Observer
 from dvfb.training.seeding import run_generator, seed_everything
 from dvfb.workflows.resources import open_run
@@ -103,15 +105,18 @@ class Positions(Observer):
 
 def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int = 3, steps: int | None = None,
                         actions: str = "rollout", cell_size: float | None = None, snapshot: int | None = None,
-                        seed: int | None = None, overwrite: bool = False, device: str | None = None) -> dict:
-    """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary."""
+                        seed: int | None = None, overwrite: bool = False, device: str | None = None,
+                        progress: bool | None = None, torch_threads: int | None = None) -> dict:
+    """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary.
+    ``progress`` as :class:`~dvfb.training.progress.Progress` takes it; ``torch_threads``: the
+    command's (:func:`~dvfb.workflows.resources.use_threads`)."""
 
     if actions not in ACTION_MODES:
         raise AnalysisError(f"--actions must be one of {', '.join(ACTION_MODES)}, got {actions!r}")
     for name, value in (("--skills", skills), ("--repeats", repeats), ("--steps", 1 if steps is None else steps)):
         if value < 1:
             raise AnalysisError(f"{name} must be at least 1")
-    run = open_run(run_path)
+    run = open_run(run_path, torch_threads)
     config = run.config
     episode_length = envs.TASKS[envs.pretrain_task(config.domain)].episode_length
     steps = episode_length if steps is None else steps  # by default a whole episode
@@ -140,11 +145,15 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
     env = envs.make(config.domain, seed=seed, reward_free=True)
     source = env.unwrapped
     positions = np.full((skills, repeats, steps + 1, len(coords.names)), np.nan)
-    for k in range(skills):
-        for r in range(repeats):
-            # An episode's end stops its record (never before ``steps`` in DMC; the rest would stay NaN).
-            run_episode(env, model.act, zs[k], actions == "rollout", [Positions(positions[k, r], coords, source)],
-                        max_steps=steps)
+    bar = Progress(skills * repeats * steps, 0, "analyze-exploration", progress, unit="step")
+    try:
+        for k in range(skills):
+            for r in range(repeats):
+                # An episode's end stops its record (never before ``steps`` in DMC; the rest would stay NaN).
+                run_episode(env, model.act, zs[k], actions == "rollout",
+                            [Positions(positions[k, r], coords, source), ProgressCount(bar)], max_steps=steps)
+    finally:
+        bar.close()
     recorded = positions[~np.isnan(positions).any(-1)]
     per_skill = [coverage(positions[k][~np.isnan(positions[k]).any(-1)], cell) for k in range(skills)]
     x = positions[..., 0]

@@ -58,7 +58,8 @@ RESUME_KIND = "finetune_resume"
 def finetune(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot: int | None = None,
              inference: dict | None = None, finetune: dict | None = None, seed: int | None = None,
              name: str | None = None, resume: bool = False, overwrite: bool = False, progress: bool | None = None,
-             device: str | None = None, log: dict | None = None, protocol: str | None = None):
+             device: str | None = None, log: dict | None = None, protocol: str | None = None,
+             torch_threads: int | None = None):
     """Fine-tune the pre-trained run ``run_dir`` on ``task`` (returns its fine-tuning run,
     :class:`~dvfb.runs.layout.FinetuneRun`), or, given a list of runs, a group (docs/members.md) in
     lockstep in this process (returns the list of their fine-tuning runs).
@@ -75,7 +76,8 @@ def finetune(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
     then raises :class:`~dvfb.errors.NonFiniteLossError`.
 
     ``log``: overrides of the pre-training run's ``log`` section (``{"wandb": True}``: also log to
-    Weights & Biases, docs/methods.md, "Logging to Weights & Biases").
+    Weights & Biases, docs/methods.md, "Logging to Weights & Biases"). ``torch_threads``: the
+    command's ``--torch-threads`` (:func:`~dvfb.workflows.resources.use_threads`).
     """
     if resume and overwrite:
         raise ConfigError("--resume and --overwrite contradict each other: pass one of them")
@@ -85,8 +87,8 @@ def finetune(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
         raise ConfigError("a group fine-tuning needs at least one run")
     if len({Path(p).resolve() for p in run_paths}) != len(run_paths):
         raise ConfigError("a run is listed twice: the members of a group are distinct runs")
-    members = [_prepared(p, task, snapshot, inference, finetune, seed, name, resume, device, log, protocol)
-               for p in run_paths]
+    members = [_prepared(p, task, snapshot, inference, finetune, seed, name, resume, device, log, protocol,
+                         torch_threads) for p in run_paths]
     if many:
         _check_group(members)
     locks = [RunLock(m.path) for m in members]
@@ -116,9 +118,9 @@ class _Member:
 
 
 def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume, device, log=None,
-              protocol=None) -> _Member:
+              protocol=None, torch_threads=None) -> _Member:
     """Everything :func:`finetune` checks before it takes the run's lock."""
-    run = open_run(run_path)
+    run = open_run(run_path, torch_threads)
     config = run.config
     check_task_in_domain(task, config.domain)
     if protocol is None and resume:  # a resumed run keeps the protocol it was started with
@@ -204,7 +206,7 @@ def _run(members: list[_Member], task: str, resume: bool, overwrite: bool, progr
             evaluate_all(t)
 
     bar = Progress(cfg.frames, group.step, what, progress)
-    checkpoints = group.checkpoints(cfg.checkpoint_every, cfg.frames, sessions[0].run.path)
+    checkpoints = group.checkpoints(cfg.checkpoint_every, cfg.frames)
     observers = [ReplayWriter(group.lanes, [s.replay for s in sessions]), ProgressCount(bar),
                  TrainingSteps(group, cfg.first_update(), cfg.update_every, checkpoints, after_step,
                                lambda session, t: session.after_episode(t))]

@@ -107,9 +107,11 @@ class Group:
         for session in self.live:
             session.save_resume(mid_episode)
 
-    def checkpoints(self, every: int, total: int, run_path) -> ResumeCheckpoints:
-        """When the group writes its members' resume checkpoints (:class:`ResumeCheckpoints`)."""
-        return ResumeCheckpoints(self.save, self.window, every, total, self.phase, run_path,
+    def checkpoints(self, every: int, total: int) -> ResumeCheckpoints:
+        """When the group writes its members' resume checkpoints (:class:`ResumeCheckpoints`); its
+        messages name every member's run directory."""
+        return ResumeCheckpoints(self.save, self.window, every, total, self.phase,
+                                 [session.run.path for session in self.sessions],
                                  last=self.sessions[0].last_checkpoint)
 
     def close_logs(self) -> None:

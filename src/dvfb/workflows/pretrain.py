@@ -198,7 +198,7 @@ def _run(configs, paths, parts, resume, overwrite, command, dataset, dataset_inf
             session.after_step(t)
 
     bar = Progress(base.frames, group.step, what, progress)
-    checkpoints = group.checkpoints(base.checkpoint_every, base.frames, paths[0].parent if many else sessions[0].run.path)
+    checkpoints = group.checkpoints(base.checkpoint_every, base.frames)
     steps = TrainingSteps(group, base.seed_frames, base.update_every, checkpoints, after_step,
                           lambda session, t: session.after_episode(t))
     observers = [ProgressCount(bar), steps]
@@ -370,6 +370,7 @@ class PretrainSession(RunSession):
                     from exc
             # Only now, with the checkpoint loaded, may the run's config change (a larger --frames).
             self.run.save_config(config)
+            self.run.record_resume(self.command, self.step)
             notify(f"[pretrain] resuming {self.run.path} from step {self.step} (of {config.frames})")
         if offline:
             self.run.write_trained_on(self.fingerprint)  # what an offline zero-shot checks its data against
@@ -408,8 +409,13 @@ class PretrainSession(RunSession):
         config = self.config
         self.step = t  # what a checkpoint written at this step records
         if t % config.log_every == 0 or t == config.frames:
-            fps = (t - self.start_step) / max(time.time() - self.started, 1e-9)
-            self.log_window(t, {"fps": fps})
+            now = time.time()
+            fps = (t - self.start_step) / max(now - self.started, 1e-9)
+            # The rate since the previous record as well: what an ETA needs (README.md, "Threads and
+            # progress"); fps, the average since the process started, hides a slowdown for hours.
+            since, step = self.last_log
+            self.last_log = (now, t)
+            self.log_window(t, {"fps": fps, "fps_recent": (t - step) / max(now - since, 1e-9)})
         if t in self.snapshots:
             self.window.check()  # no snapshot of a non-finite learner
             save_snapshot(self.run, self.snapshot(t), snapshot_name(t))

@@ -1,32 +1,77 @@
-"""What a workflow checks before it starts: the device and threads, the memory a run needs, and
-that a task belongs to the run's domain."""
+"""What a workflow checks before it starts: the device and threads, the memory a run needs, that a
+task belongs to the run's domain, and what a command evaluates (a run directory, or the one an
+exported model is evaluated in)."""
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
 import torch
 
 from dvfb import envs
 from dvfb.agents import get_spec
 from dvfb.errors import ConfigError
 from dvfb.execution import resolve_device
+from dvfb.runs.export import evaluation_run, is_export, remove_evaluation_run
 from dvfb.runs.layout import PretrainRun
+from dvfb.runs.machine import cores, default_torch_threads
 from dvfb.runs.run_config import PretrainConfig
 from dvfb.training.progress import notify
 
 
+def use_threads(requested: int | None = 0, run_setting: int = 0) -> int:
+    """Set this process's torch threads (README.md, "Threads and progress") and return them:
+    ``requested`` (a command's ``--torch-threads``) when positive; when None (not given to a command
+    on a run), the run's own ``torch_threads`` if it set one, at most the CPUs this process may use (a
+    run made on a large node, evaluated on a laptop); otherwise :func:`default_torch_threads`."""
+    if requested:
+        threads = requested
+    elif requested is None and run_setting > 0:
+        threads = min(run_setting, cores())
+    else:
+        threads = default_torch_threads()
+    torch.set_num_threads(threads)
+    return threads
+
+
 def setup_torch(config: PretrainConfig) -> torch.device:
-    if config.torch_threads > 0:
-        torch.set_num_threads(config.torch_threads)
+    use_threads(config.torch_threads)
     return resolve_device(config.device)
 
 
-def open_run(path) -> PretrainRun:
-    """Open a pre-training run and apply its ``torch_threads`` (acting is batch-1 forward passes,
-    which slow down badly when OpenMP threads compete for busy cores)."""
+def open_run(path, torch_threads: int | None = None) -> PretrainRun:
+    """Open a pre-training run and set the threads of the command that uses it (:func:`use_threads`:
+    ``torch_threads``, else the run's own setting, else the default); acting is batch-1 forward
+    passes, which slow down badly when OpenMP threads compete for busy cores."""
     run = PretrainRun.open(path)
-    if run.config.torch_threads > 0:
-        torch.set_num_threads(run.config.torch_threads)
+    use_threads(torch_threads, run.config.torch_threads)
     return run
+
+
+@contextlib.contextmanager
+def run_or_export(path, eval_dir=None, command: list[str] | None = None
+                  ) -> Iterator[tuple[Path, dict[str, np.ndarray] | None]]:
+    """What a command evaluates, as ``(run directory, inference data)``: a run directory as it is
+    (no data), or for an exported model (docs/sharing.md, "Evaluate") the run directory it is
+    evaluated in (``eval_dir``, by default ``<DIR>.eval`` beside it; made the first time) with the
+    export's inference samples. A directory made here is removed again when the command fails
+    before anything was written in it; the export's own files are only read."""
+    if not is_export(path):
+        if eval_dir is not None:
+            raise ConfigError(f"--eval-dir is where an exported model is evaluated; {path} is not an exported model")
+        yield Path(path), None
+        return
+    run, export, created = evaluation_run(path, eval_dir, command)
+    notify(f"[export] {path} is an exported model; evaluating it in {run.path}" + (" (made now)" if created else ""))
+    try:
+        yield run.path, export.inference_data
+    except BaseException:
+        if created:
+            remove_evaluation_run(run)
+        raise
 
 
 def available_memory_bytes() -> int | None:

@@ -58,6 +58,7 @@ class RunSession:
     resumable: ClassVar[tuple[str, ...]] = ()
 
     run: Any
+    command: list[str] | None = None  # this call's command line: meta.json records it, and each resume's
     config: Any  # the config the run is written with (the run directory's config.json)
     seed: int
     finished = False
@@ -78,6 +79,7 @@ class RunSession:
         """Create the run directory, or open it to resume: its config must equal this session's but
         for :attr:`resumable` fields; a finished run sets :attr:`finished`; otherwise the latest
         checkpoint is read (``state``). Nothing is written on a resume until the state is restored."""
+        self.command = command
         if not resume:
             self.run = run_cls.create(path, self.config, overwrite=overwrite, command=command)
             return
@@ -199,6 +201,7 @@ class RunSession:
             self.window.load_state(self.window_state)
         self.started = time.time()
         self.start_step = self.step
+        self.last_log = (self.started, self.step)  # (time, step) of the newest record's rate
 
     def wandb_sink(self) -> WandbSink | None:
         """The run's W&B run when its config asks for one (``--log.wandb``; docs/methods.md, "Logging to

@@ -87,14 +87,15 @@ def skill_episode(model, env, z: torch.Tensor, max_steps: int | None, explore: b
 def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes_per_skill: int = 2,
                   bins: int = 4, max_steps: int | None = None, inference: dict | None = None,
                   snapshot: int | None = None, seed: int | None = None, overwrite: bool = False,
-                  device: str | None = None) -> dict:
-    """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary."""
+                  device: str | None = None, torch_threads: int | None = None) -> dict:
+    """Run the analysis of the module docstring on a pre-trained run; returns the JSON summary
+    (``torch_threads``: the command's, :func:`~dvfb.workflows.resources.use_threads`)."""
 
     if episodes_per_skill < 1:
         raise AnalysisError("--episodes-per-skill must be at least 1")
     if max_steps is not None and max_steps < 1:
         raise AnalysisError("--max-steps must be at least 1")
-    run = open_run(run_path)
+    run = open_run(run_path, torch_threads)
     config = run.config
     check_task_in_domain(task, config.domain)
     protocol = run_protocol(config, inference)

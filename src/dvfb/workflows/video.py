@@ -32,6 +32,8 @@ from dvfb.errors import DvfbError
 from dvfb.runs import check_writable
 from dvfb.runs.snapshots import load_model
 from dvfb.training.evaluation import run_episode
+from dvfb.training.observers import ProgressCount
+from dvfb.training.progress import Progress
 from dvfb.training.rollout import Observer
 from dvfb.training.seeding import run_generator, seed_everything
 from dvfb.workflows.resources import check_task_in_domain, open_run
@@ -160,18 +162,22 @@ def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:
                 writer.append_data(frame)
 
 
-def _task_vector(run, config, model, task: str, snapshot: int, inference: dict | None,
-                 seed: int, infer: bool) -> tuple[torch.Tensor, str]:
-
+def _stored_vector(run, model, task: str, snapshot: int, infer: bool) -> tuple[torch.Tensor, str] | None:
+    """z_r of the run's zero-shot result of ``task`` for this snapshot; None when there is none (or
+    ``infer`` asks for a new one)."""
     stored = run.zeroshot_result(task, snapshot)
     result = None if infer else run.read_zeroshot_result(task, snapshot, AnalysisError)
     if result is not None and isinstance(result.z, list) and result.snapshot_frames == snapshot:
         return torch.tensor(result.z, dtype=torch.float32, device=model.device), f"z from {stored}"
+    return None
+
+
+def _inferred_vector(config, model, task: str, inference: dict | None, seed: int, progress) -> tuple[torch.Tensor, str]:
     protocol = run_protocol(config, inference)
     rng = seed_everything(seed)
     model.use_generator(run_generator(seed, model.device))  # the analysis' own random stream
     env = envs.make(task, seed=seed)
-    z, _info = protocol.task_skill(model, env, rng, envs.TASKS[task].episode_length)
+    z, _info = protocol.task_skill(model, env, rng, envs.TASKS[task].episode_length, progress=progress)
     return z, f"skill found by {protocol.name} in {protocol.task_steps()} reward-labelled steps"
 
 
@@ -179,8 +185,10 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
                  max_steps: int | None = None, frame_skip: int = 2, height: int = 240, width: int = 320,
                  camera: str | int | None = None, inference: dict | None = None, snapshot: int | None = None,
                  seed: int | None = None, infer: bool = False, overwrite: bool = False,
-                 device: str | None = None) -> dict:
-    """Render ``episodes`` evaluation episodes of the run's zero-shot policy on ``task`` into one video."""
+                 device: str | None = None, progress: bool | None = None, torch_threads: int | None = None) -> dict:
+    """Render ``episodes`` evaluation episodes of the run's zero-shot policy on ``task`` into one video.
+    ``progress`` as :class:`~dvfb.training.progress.Progress` takes it; ``torch_threads``: the
+    command's (:func:`~dvfb.workflows.resources.use_threads`)."""
 
     for name, value in (("--episodes", episodes), ("--frame-skip", frame_skip), ("--height", height),
                         ("--width", width)):
@@ -188,7 +196,7 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
             raise AnalysisError(f"{name} must be at least 1")
     if max_steps is not None and max_steps < 1:
         raise AnalysisError("--max-steps must be at least 1")
-    run = open_run(run_path)
+    run = open_run(run_path, torch_threads)
     config = run.config
     check_task_in_domain(task, config.domain)
     out = Path(out) if out is not None else run.analysis_dir / f"video_{task}.gif"
@@ -206,15 +214,24 @@ def record_video(run_path: str | Path, task: str, *, episodes: int = 1, out: str
         env.reset()
         renderer.frame()
         model, snapshot = load_model(run, snapshot, device)
-        z, skill_source = _task_vector(run, config, model, task, snapshot, inference,
-                                   seed, infer)
-        frames, returns = [], []
-        fps = env.metadata["render_fps"] / frame_skip
-        for episode in range(episodes):
-            # Reseeding gives the first episode the initial state of the zero-shot evaluation's first.
-            lane = run_episode(env, model.act, z, False, [Frames(frames, renderer, frame_skip)], max_steps,
-                               reset_seed=seed if episode == 0 else None)
-            returns.append(lane.state.episode_return)
+        stored = _stored_vector(run, model, task, snapshot, infer)
+        length = envs.TASKS[task].episode_length
+        steps = episodes * (length if max_steps is None else min(max_steps, length))
+        if stored is None:
+            steps += run_protocol(config, inference).task_steps()
+        # Rendering is slow (software OpenGL): the steps counted, so that a long video shows progress.
+        bar = Progress(steps, 0, f"video {task}", progress, unit="step")
+        try:
+            z, skill_source = stored or _inferred_vector(config, model, task, inference, seed, bar)
+            frames, returns = [], []
+            fps = env.metadata["render_fps"] / frame_skip
+            for episode in range(episodes):
+                # Reseeding gives the first episode the initial state of the zero-shot evaluation's first.
+                lane = run_episode(env, model.act, z, False, [Frames(frames, renderer, frame_skip), ProgressCount(bar)],
+                                   max_steps, reset_seed=seed if episode == 0 else None)
+                returns.append(lane.state.episode_return)
+        finally:
+            bar.close()
     finally:
         renderer.close()
     write_video(out, frames, fps)

@@ -10,6 +10,10 @@ or skill selection (skill discovery). Protocols that infer skills from data also
   run trained on) with the task's rewards relabelled from their physics states;
 * ``goal``: a goal observation.
 
+An exported model (docs/sharing.md, "Evaluate") is evaluated in a run directory made from it, with
+its ``inference_data.npz`` (``inference_data``): the states a reward function is applied to, and,
+relabelled from their physics states, the samples of ``skill_source="dataset"`` without a dataset.
+
 The result (returns, the skill, the protocol's details) is written to ``RUN/zeroshot/<task>.json``
 (:class:`~dvfb.runs.records.ZeroShotResult`). One implementation serves a run and a group of runs
 (docs/members.md): a run is a group of one.
@@ -128,6 +132,31 @@ def _inference_states(model: Model, run: PretrainRun | None, config: PretrainCon
     return data.obs, data.next_obs, source
 
 
+def exported_states(data: dict[str, np.ndarray], device) -> tuple[torch.Tensor, torch.Tensor, str]:
+    """The observations and next observations of an exported model's inference data, and what they are."""
+    return (torch.as_tensor(data["obs"], dtype=torch.float32, device=device),
+            torch.as_tensor(data["next_obs"], dtype=torch.float32, device=device),
+            f"the exported model's inference data ({len(data['obs'])} transitions)")
+
+
+def infer_from_exported_data(model: Model, config: PretrainConfig, task: str, protocol: ZeroShotProtocol,
+                             data: dict[str, np.ndarray]) -> tuple[torch.Tensor, dict]:
+    """The skill from an exported model's inference samples with ``task``'s rewards recomputed from
+    the physics states of their next observations (docs/sharing.md, "Evaluate"), as a dataset's."""
+    next_physics = data.get(f"next_{PHYSICS_COLUMN}")
+    if next_physics is None:
+        raise ConfigError("--skill-source dataset relabels the exported model's inference data from their physics "
+                          "states, but its inference_data.npz has none of the next observations (the run did not "
+                          "record physics, or an older dvfb exported it); use --skill-source rewards or reward_fn, "
+                          "or give --dataset DIR")
+    env = envs.make(task, seed=config.seed)
+    rewards = env.unwrapped.rewards_from_physics(next_physics)
+    obs, next_obs, source = exported_states(data, model.device)
+    reward_t = torch.as_tensor(rewards, dtype=torch.float32, device=model.device).reshape(-1, 1)
+    skill, info = protocol.skill_from_samples(model, obs, next_obs, reward_t)
+    return skill, {**info, "states": f"{source}, rewards of {task} relabelled from physics"}
+
+
 def infer_from_dataset(model: Model, run: PretrainRun, task: str, protocol: ZeroShotProtocol,
                        dataset: str | Path | None) -> tuple[torch.Tensor, dict]:
     """The skill from a dataset's transitions with ``task``'s rewards recomputed from their physics
@@ -158,7 +187,8 @@ def zeroshot(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
              inference: dict | None = None, seed: int | None = None, skill_source: str = "rewards",
              reward_fn: str | Callable | None = None, goal: np.ndarray | None = None, overwrite: bool = False,
              device: str | None = None, progress: bool | None = None, dataset: str | Path | None = None,
-             skip_existing: bool = False):
+             skip_existing: bool = False, torch_threads: int | None = None,
+             inference_data: dict[str, np.ndarray] | None = None):
     """Find the task's skill by the run's zero-shot protocol and evaluate ``pi(., skill)``; returns
     the result (a dict of the result file's fields).
 
@@ -170,7 +200,9 @@ def zeroshot(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
     that already have the task's result are left out (their entry is None) instead of being an error.
 
     ``progress``: True shows a bar, False nothing, None a bar on a terminal and otherwise a line
-    every ``DVFB_PROGRESS_SECONDS`` seconds.
+    every ``DVFB_PROGRESS_SECONDS`` seconds. ``torch_threads``: the command's ``--torch-threads``
+    (:func:`~dvfb.workflows.resources.use_threads`; None: the run's own setting or the default).
+    ``inference_data``: an exported model's inference samples (module docstring), for one run.
     """
     for option, value, source in (("--dataset", dataset, "dataset"), ("--reward-fn", reward_fn, "reward_fn"),
                                   ("--goal", goal, "goal")):
@@ -182,11 +214,14 @@ def zeroshot(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
     run_paths = list(run_dir) if many else [run_dir]
     if not run_paths:
         raise ConfigError("a group zero-shot needs at least one run")
+    if inference_data is not None and many:
+        raise ConfigError("an exported model's inference data belong to one model: evaluate exported models one at "
+                          "a time")
     if len({Path(p).resolve() for p in run_paths}) != len(run_paths):
         raise ConfigError("a run is listed twice: the members of a group are distinct runs")
     members = []
     for run_path in run_paths:
-        run = open_run(run_path)
+        run = open_run(run_path, torch_threads)
         protocol = run_protocol(run.config, inference, skill_source)
         evaluation_tasks(run.config, [task])
         members.append((run, protocol))
@@ -223,7 +258,7 @@ def zeroshot(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
             rng = seed_everything(member_seed)
             model.use_generator(run_generator(member_seed, model.device))  # the evaluation's own random stream
             z, info = task_skill(model, run, task, protocol, rng, member_seed, skill_source, reward_fn, goal,
-                                 progress=bar, dataset=dataset)
+                                 progress=bar, dataset=dataset, inference_data=inference_data)
             skills.append(z)
             infos.append(info)
             seeds.append(member_seed)
@@ -253,13 +288,15 @@ def zeroshot(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
 def task_skill(model: Model, run: PretrainRun, task: str, protocol: ZeroShotProtocol,
                rng: np.random.Generator, seed: int, skill_source: str = "rewards", reward_fn: str | Callable | None = None,
                goal: np.ndarray | None = None, keep_data: bool = False, env=None,
-               progress=None, dataset: str | Path | None = None) -> tuple[torch.Tensor | None, dict]:
+               progress=None, dataset: str | Path | None = None,
+               inference_data: dict[str, np.ndarray] | None = None) -> tuple[torch.Tensor | None, dict]:
     """The skill the policy is evaluated with, by the run's zero-shot protocol.
 
     ``skill_source``: interaction with the task (``rewards``), a reward function over the run's replay
     states, or a goal, where the protocol supports them. With ``keep_data`` the collected buffer is
     returned in ``info["buffer"]`` (fine-tuning's D12 option). ``env``: the task environment to
-    collect in (fine-tuning goes on in the same one); by default a new one.
+    collect in (fine-tuning goes on in the same one); by default a new one. ``inference_data``: an
+    exported model's samples (module docstring), used instead of the run's replay.
     """
     config = run.config
     protocol.check_source(skill_source, config.agent)
@@ -271,8 +308,11 @@ def task_skill(model: Model, run: PretrainRun, task: str, protocol: ZeroShotProt
         if reward_fn is None:
             raise ConfigError("skill_source 'reward_fn' needs a reward function")
         fn = load_reward_fn(reward_fn) if isinstance(reward_fn, str) else reward_fn
-        return infer_from_reward_fn(model, run, fn, protocol, rng)
+        states = exported_states(inference_data, model.device) if inference_data is not None else None
+        return infer_from_reward_fn(model, run, fn, protocol, rng, states=states)
     if skill_source == "dataset":
+        if dataset is None and inference_data is not None:
+            return infer_from_exported_data(model, config, task, protocol, inference_data)
         return infer_from_dataset(model, run, task, protocol, dataset)
     if goal is None:
         raise ConfigError("skill_source 'goal' needs a goal observation")
