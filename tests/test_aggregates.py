@@ -21,7 +21,7 @@ from dvfb.analysis.report import make_report
 from dvfb.cli import main
 from dvfb.runs import write_json_atomic
 
-from test_analysis import make_pretrain_run, md_row
+from test_analysis import make_finetune_run, make_pretrain_run, md_row
 
 WALKER = ("walker_stand", "walker_walk", "walker_run", "walker_flip")
 
@@ -276,6 +276,22 @@ def test_finetuning_curves_have_bootstrap_bands(tmp_path: Path):
     assert band.mean.tolist() == [2.5, 5.0]
     assert band.low[0] < 2.5 < band.high[0] and band.low[1] < 5.0 < band.high[1]
     assert np.all(np.isnan(aggregate(curves[:2], spread="ci").low))  # two seeds: no band
+
+
+def test_finetuning_aggregates_name_their_normaliser_without_asking_for_a_supervised_run(compared, tmp_path: Path):
+    """The supervised reference normalises zero-shot results: with it in the report, the fine-tuning
+    aggregates use the URLB expert returns, and the note says so instead of asking for the runs it has."""
+    root, random_file = compared
+    for seed in range(3):
+        make_finetune_run(root / f"dvfb_s{seed}", "walker_walk", [(0, 10.0), (20_000, 300.0 + seed)])
+        make_finetune_run(root / f"fb_s{seed}", "walker_walk", [(0, 10.0), (20_000, 100.0 + seed)])
+    report = make_report([root], tmp_path / "report", random_files=[random_file])
+    assert report.aggregates["zeroshot"].normaliser.name == "minmax"
+    finetune = report.aggregates["finetune"]
+    assert finetune.normaliser.name == "expert"
+    assert finetune.notes == ["fine-tuning aggregates use the expert normaliser (the supervised reference "
+                              "normalises zero-shot results only)"]
+    assert not any("dvfb supervised" in note for note in report.notes)
 
 
 # ---------------------------------------------------------------------------------------------

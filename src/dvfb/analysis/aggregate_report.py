@@ -16,7 +16,7 @@ import numpy as np
 
 from dvfb.analysis import aggregate as agg
 from dvfb.analysis.common import Score, method_sort_key
-from dvfb.analysis.normalise import REFERENCE_METHODS, Normaliser, choose, missing_reference
+from dvfb.analysis.normalise import REFERENCE_METHODS, SUPERVISED, Normaliser, choose, missing_reference
 from dvfb.analysis.normalise import normalisers as available_normalisers
 
 ALL_DOMAINS = "all domains"
@@ -77,12 +77,23 @@ def compute(scores: Sequence[Score], kind: str, title: str, requested: str = "au
     tasks = sorted({s.task for s in scores if s.method not in REFERENCE_METHODS})
     normaliser = choose(requested, tasks, available)
     notes = []
-    if requested == "auto":
+    if requested == "auto" and kind == "finetune" and SUPERVISED not in {s.method for s in scores}:
+        # The supervised reference is a zero-shot result (docs/reports.md): telling the user to run it
+        # would not change the fine-tuning aggregates, so the note says which normaliser applies.
         if normaliser is None:
-            notes.append("aggregates are over raw episode returns: " + missing_reference("supervised", tasks, available))
+            notes.append("fine-tuning aggregates are over raw episode returns: "
+                         + missing_reference("expert", tasks, available))
+        else:
+            notes.append(f"fine-tuning aggregates use the {normaliser.name} normaliser (the supervised reference "
+                         "normalises zero-shot results only)")
+    elif requested == "auto":
+        if normaliser is None:
+            notes.append("aggregates are over raw episode returns: "
+                         + missing_reference("supervised", tasks, available))
         elif normaliser.name != "minmax":
             lacking = "supervised" if normaliser.name == "expert" else "minmax"
-            notes.append(f"aggregates use the {normaliser.name} normaliser: " + missing_reference(lacking, tasks, available))
+            notes.append(f"aggregates use the {normaliser.name} normaliser: "
+                         + missing_reference(lacking, tasks, available))
     domains = _domains([s for s in scores if s.method not in REFERENCE_METHODS])
     scopes = []
     groups = [(d, [s for s in scores if s.domain == d]) for d in domains]

@@ -1,5 +1,5 @@
 """What a run's ``meta.json`` records about the machine and the software it ran on, so that a
-researcher can tell why two machines give different numbers (docs/runs.md): the versions of the
+researcher can tell why two machines give different numbers (README.md, "Using it"): the versions of the
 libraries that decide the numerics, the CPU model with its vector extensions (float32 sums are
 ordered differently with AVX2 and AVX-512, docs/members.md), the GPUs torch sees, the CPUs the
 process may use and the torch threads it computed with.
