@@ -12,9 +12,12 @@ import pytest
 import torch
 
 from dvfb import envs
-from dvfb.agents import AGENTS, make_agent
+from dvfb.agents import AGENTS, get_spec, make_agent
+from dvfb.agents.base import Agent
 from dvfb.errors import ConfigError
-from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS, protocols_of
+from dvfb.nets.learner import Learner
+from dvfb.nets.members import member_training_state, stack_agents
+from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS, Finetuner, protocols_of
 from dvfb.protocols.zero_shot import SkillSelection, SkillSelectionConfig, best_candidate
 from dvfb.skills import SkillSpec
 from dvfb.runs.run_config import run_config_class
@@ -73,6 +76,55 @@ def test_every_registered_method_names_registered_protocols_and_its_configs_foll
         assert zero_shot.name in ZERO_SHOT_PROTOCOLS and finetuner.name in FINETUNERS
         config = run_config_class(name)()
         assert type(config.inference) is zero_shot.config_cls and type(config.finetune) is finetuner.config_cls
+
+
+# The hooks that delegate to the model or hold the random stream: written once, on Learner.
+SHARED_HOOKS = ("generator", "net_runner", "use_generator", "nonfinite_hint")
+
+
+def test_agents_and_finetuners_are_learners_that_share_the_default_hooks():
+    learner_classes = [get_spec(name).agent_cls for name in AGENTS] + list(FINETUNERS.values())
+    for cls in learner_classes:
+        assert issubclass(cls, Learner) and issubclass(cls, (Agent, Finetuner))
+        for hook in SHARED_HOOKS:
+            assert getattr(cls, hook) is getattr(Learner, hook), f"{cls.__name__} redefines {hook}"
+
+
+class _ScaleFinetuner(Finetuner):
+    """A fine-tuner with only the hooks it must write: its own network and optimiser."""
+
+    def __init__(self, model, skill, config):
+        super().__init__(model, skill, config)
+        self.scale = torch.nn.Linear(2, 2)
+        self.optimizer = torch.optim.Adam(self.scale.parameters(), lr=0.1)
+
+    def optimizers(self):
+        return {"scale": self.optimizer}
+
+    def update(self, batch):
+        loss = self.scale(batch).square().mean()
+        self.optimizer.zero_grad()
+        loss.backward()
+        self.optimizer.step()
+        return {"loss": loss.detach()}
+
+
+def test_a_finetuner_gets_the_learner_defaults_for_its_state_stream_and_group():
+    models = [_skill_agent().model for _ in range(2)]
+    tuners = [_ScaleFinetuner(model, None, None) for model in models]
+    tuners[0].update(torch.ones(3, 2))
+    state = tuners[0].training_state()
+    assert "scale.weight" in state["modules"] and any(k.startswith("model.") for k in state["modules"])
+    tuners[1].load_training_state(state)
+    assert torch.equal(tuners[1].scale.weight, tuners[0].scale.weight)
+    generator = torch.Generator()
+    tuners[0].use_generator(generator)
+    assert tuners[0].generator is generator and models[0].generator is generator
+    tuners[1].use_generator(torch.Generator())
+    group = stack_agents(tuners)
+    assert group.members == 2 and group.scale.weight.shape == (2, 2, 2)
+    # Member 1's state is the one its own fine-tuner held: the state it loaded.
+    assert torch.equal(member_training_state(group, 1)["modules"]["scale.weight"], state["modules"]["scale.weight"])
 
 
 def test_best_candidate_is_the_first_highest_return():

@@ -36,6 +36,7 @@ from dvfb.agents import get_spec
 from dvfb.config import merge, to_dict
 from dvfb.data import ReplayBuffer
 from dvfb.errors import CheckpointError, ConfigError
+from dvfb.nets.learner import Learner
 from dvfb.protocols import chosen_finetuner, finetuner_class, zero_shot_protocol
 from dvfb.runs import RunDir, RunLock, check_writable
 from dvfb.runs.layout import FinetuneRun, PretrainRun
@@ -316,7 +317,7 @@ class FinetuneSession(RunSession):
         if state is not None:
             self._write_curve()
 
-    def bind_member(self, learner, index: int | None) -> None:
+    def bind_member(self, learner: Learner, index: int | None) -> None:
         super().bind_member(learner, index)
         self._skill_row = None
 
