@@ -17,7 +17,8 @@ from dvfb.agents.base import Agent
 from dvfb.errors import ConfigError
 from dvfb.nets.learner import Learner
 from dvfb.nets.members import member_training_state, stack_agents
-from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS, Finetuner, protocols_of
+from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS, Finetuner, finetuner_choices, protocols_of, \
+    resolve_finetuner
 from dvfb.protocols.zero_shot import SkillSelection, SkillSelectionConfig, best_candidate
 from dvfb.skills import SkillSpec
 from dvfb.runs.run_config import run_config_class
@@ -76,6 +77,19 @@ def test_every_registered_method_names_registered_protocols_and_its_configs_foll
         assert zero_shot.name in ZERO_SHOT_PROTOCOLS and finetuner.name in FINETUNERS
         config = run_config_class(name)()
         assert type(config.inference) is zero_shot.config_cls and type(config.finetune) is finetuner.config_cls
+
+
+def test_the_fine_tuner_resolves_to_a_registered_name():
+    for name in AGENTS:
+        own = resolve_finetuner(name)
+        assert own in FINETUNERS and own == get_spec(name).finetuner == protocols_of(name)[1].name
+        for choice in finetuner_choices(name):
+            assert resolve_finetuner(name, choice) == choice and choice in FINETUNERS
+    # "" meant the method's own in older configs only (dvfb.runs.migrations); it is not a name.
+    with pytest.raises(ConfigError, match="choose one of dual_value, latent_search, online_inference"):
+        resolve_finetuner("fb", "")
+    with pytest.raises(ConfigError, match="--protocol latent_search is not a protocol of 'rnd'; choose one of urlb"):
+        resolve_finetuner("rnd", "latent_search")
 
 
 # The hooks that delegate to the model or hold the random stream: written once, on Learner.
