@@ -31,7 +31,8 @@ from dvfb.cli import main
 from dvfb.config import merge, save_json
 from dvfb.runs import write_json_atomic
 from dvfb.runs.presets import preset_config
-from dvfb.runs.run_config import finetune_run_config_class
+from dvfb.protocols import protocols_of
+from dvfb.runs.run_config import FinetuneRunConfig
 
 from test_workflows import FAST_INFERENCE, pretrain_args
 
@@ -62,9 +63,10 @@ def make_finetune_run(run: Path, task: str, points: list[tuple[int, float]], nam
                       seed: int | None = None, finished: bool = True, **finetune) -> Path:
     parent = json.loads((run / "config.json").read_text())
     seed = parent["seed"] if seed is None else seed
-    config = finetune_run_config_class(parent["agent"])(
+    zero_shot, finetuner = protocols_of(parent["agent"])
+    config = FinetuneRunConfig(
         pretrain_run=str(run), agent=parent["agent"], domain=parent["domain"], task=task, snapshot=100_000, seed=seed,
-        finetune=FinetuneConfig(**finetune))
+        protocol=finetuner.name, inference=zero_shot.config_cls(), finetune=FinetuneConfig(**finetune))
     path = run / "finetune" / (name or task)
     path.mkdir(parents=True)
     save_json(config, path / "config.json")

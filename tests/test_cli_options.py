@@ -31,6 +31,39 @@ def test_zeroshot_and_finetune_help_show_the_defaults_of_each_preset(capsys):
     assert "(default: 100000)" not in text and "(default: 50)" not in text
 
 
+def _help_groups(argv: list[str], capsys) -> dict[str, str]:
+    """The help's groups: title -> the text below it (argparse's layout: a title line ending in ':')."""
+    with pytest.raises(SystemExit):
+        main([*argv, "--help"])
+    groups: dict[str, list[str]] = {}
+    title = ""
+    for line in capsys.readouterr().out.splitlines():
+        if line and not line.startswith(" ") and line.endswith(":"):
+            title = line[:-1]
+            groups[title] = []
+        elif title:
+            groups[title].append(line)
+    return {name: " ".join(" ".join(lines).split()) for name, lines in groups.items()}
+
+
+def test_finetune_help_lists_each_protocols_options_under_its_name(capsys):
+    groups = _help_groups(["finetune"], capsys)
+    schedule = groups["finetune options of every protocol (FinetuneSchedule)"]
+    dual_value = groups["--protocol dual_value (FinetuneConfig)"]
+    latent_search = groups["--protocol latent_search (LatentSearchConfig)"]
+    urlb = groups["--protocol urlb (DDPGFinetuneConfig)"]
+    online = groups["--protocol online_inference (OnlineInferenceConfig)"]
+    assert "--finetune.frames" in schedule and "--finetune.frames" not in dual_value
+    assert "the fine-tuner of fb, dvfb" in dual_value and "--finetune.eta " in dual_value
+    assert "chosen with --protocol latent_search instead of dual_value" in latent_search
+    assert "--finetune.method " in latent_search and "--finetune.eta " not in latent_search
+    # An option two fine-tuners share is listed once, and named in the other's description.
+    assert "--finetune.cov-ridge " in dual_value and "also --finetune.cov-ridge (listed under dual_value)" \
+        in latent_search
+    assert "--finetune.init-critic " in urlb and "the fine-tuner of rnd" in urlb
+    assert "--finetune.rule " in online and "--finetune.rule " not in urlb
+
+
 def test_zeroshot_names_online_inference_options_after_it_and_keeps_the_old_names(capsys):
     text = _help(["zeroshot"], capsys)
     assert "--online-inference.rule" in text and "--finetune." not in text

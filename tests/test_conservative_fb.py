@@ -37,9 +37,9 @@ def test_penalty_by_hand(penalty):
     agent, b, z = agent_and_batch(penalty, samples=6)
     term = agent.penalty_term
     assert (term.num_uniform, term.num_each) == (3, 1)
-    agent.generator = torch.Generator().manual_seed(7)
+    agent.use_generator(torch.Generator().manual_seed(7))
     states, actions, zs = term.penalty_actions(agent, b, z)
-    agent.generator = torch.Generator().manual_seed(7)
+    agent.use_generator(torch.Generator().manual_seed(7))
     forward = agent.forward_map(b.obs, b.action, z)
     backward = agent.backward_map(b.next_obs)
     got = float(term.conservative_penalty(agent, b, z, forward, backward).detach())

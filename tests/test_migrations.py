@@ -53,6 +53,9 @@ def test_the_runs_of_the_previous_release_are_read_with_their_records(old_runs):
     assert result.task == MAZE and result.snapshot_frames == 1200 and len(result.returns) == 1
     (finetune,) = run.finetune_runs()
     assert finetune.is_finished() and finetune.curve().curve[-1]["frames"] == 1200
+    # It recorded no protocol (before --protocol): it is the method's own fine-tuner, by its name.
+    assert "protocol" not in json.loads((finetune.path / "config.json").read_text())
+    assert finetune.config.protocol == "dual_value" and finetune.config.own_protocol
     assert finetune.parent().path == run.path
     assert PretrainRun.open(rnd_run).resume_state()["kind"] == "pretrain_resume"
 
@@ -82,6 +85,7 @@ def test_the_commands_continue_the_runs_of_the_previous_release(old_runs, capsys
     assert main(["finetune", str(dvfb_run), "--task", MAZE, "--snapshot", "1200", *INFERENCE, *FINETUNE_FLAGS,
                  "--finetune.frames", "1500", "--resume"]) == 0
     assert FinetuneRun.open(dvfb_run / "finetune" / MAZE).finished_frames() == 1500
+    assert json.loads((dvfb_run / "finetune" / MAZE / "config.json").read_text())["protocol"] == "dual_value"
 
 
 def test_older_formats_are_refused_with_one_line_naming_their_format(old_runs, capsys):

@@ -26,7 +26,8 @@ from dvfb.envs.registry import tasks_of_domain
 from dvfb.errors import ConfigError
 from dvfb.runs import write_json_atomic
 from dvfb.runs.presets import preset_config
-from dvfb.runs.run_config import finetune_run_config_class
+from dvfb.protocols import protocols_of
+from dvfb.runs.run_config import FinetuneRunConfig
 from dvfb.sweep import runner, spec
 
 from test_analysis import make_finetune_run, make_pretrain_run
@@ -176,9 +177,11 @@ def test_a_flag_that_is_no_option_of_the_agent_is_an_error():
 def make_urlb_finetune_run(run: Path, task: str, points: list[tuple[int, float]]) -> Path:
     """A finished fine-tuning run of a URLB-style method (its own fine-tuning config) with a curve."""
     parent = json.loads((run / "config.json").read_text())
-    config = finetune_run_config_class(parent["agent"])(
+    zero_shot, finetuner = protocols_of(parent["agent"])
+    config = FinetuneRunConfig(
         pretrain_run=str(run), agent=parent["agent"], domain=parent["domain"], task=task, snapshot=100_000,
-        seed=parent["seed"])
+        seed=parent["seed"], protocol=finetuner.name, inference=zero_shot.config_cls(),
+        finetune=finetuner.config_cls())
     path = run / "finetune" / task
     path.mkdir(parents=True)
     save_json(config, path / "config.json")

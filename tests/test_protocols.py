@@ -12,9 +12,13 @@ import pytest
 import torch
 
 from dvfb import envs
-from dvfb.agents import AGENTS, make_agent
+from dvfb.agents import AGENTS, get_spec, make_agent
+from dvfb.agents.base import Agent
 from dvfb.errors import ConfigError
-from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS, protocols_of
+from dvfb.nets.learner import Learner
+from dvfb.nets.members import member_training_state, stack_agents
+from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS, Finetuner, finetuner_choices, protocols_of, \
+    resolve_finetuner
 from dvfb.protocols.zero_shot import SkillSelection, SkillSelectionConfig, best_candidate
 from dvfb.skills import SkillSpec
 from dvfb.runs.run_config import run_config_class
@@ -73,6 +77,68 @@ def test_every_registered_method_names_registered_protocols_and_its_configs_foll
         assert zero_shot.name in ZERO_SHOT_PROTOCOLS and finetuner.name in FINETUNERS
         config = run_config_class(name)()
         assert type(config.inference) is zero_shot.config_cls and type(config.finetune) is finetuner.config_cls
+
+
+def test_the_fine_tuner_resolves_to_a_registered_name():
+    for name in AGENTS:
+        own = resolve_finetuner(name)
+        assert own in FINETUNERS and own == get_spec(name).finetuner == protocols_of(name)[1].name
+        for choice in finetuner_choices(name):
+            assert resolve_finetuner(name, choice) == choice and choice in FINETUNERS
+    # "" meant the method's own in older configs only (dvfb.runs.migrations); it is not a name.
+    with pytest.raises(ConfigError, match="choose one of dual_value, latent_search, online_inference"):
+        resolve_finetuner("fb", "")
+    with pytest.raises(ConfigError, match="--protocol latent_search is not a protocol of 'rnd'; choose one of urlb"):
+        resolve_finetuner("rnd", "latent_search")
+
+
+# The hooks that delegate to the model or hold the random stream: written once, on Learner.
+SHARED_HOOKS = ("generator", "net_runner", "use_generator", "nonfinite_hint")
+
+
+def test_agents_and_finetuners_are_learners_that_share_the_default_hooks():
+    learner_classes = [get_spec(name).agent_cls for name in AGENTS] + list(FINETUNERS.values())
+    for cls in learner_classes:
+        assert issubclass(cls, Learner) and issubclass(cls, (Agent, Finetuner))
+        for hook in SHARED_HOOKS:
+            assert getattr(cls, hook) is getattr(Learner, hook), f"{cls.__name__} redefines {hook}"
+
+
+class _ScaleFinetuner(Finetuner):
+    """A fine-tuner with only the hooks it must write: its own network and optimiser."""
+
+    def __init__(self, model, skill, config):
+        super().__init__(model, skill, config)
+        self.scale = torch.nn.Linear(2, 2)
+        self.optimizer = torch.optim.Adam(self.scale.parameters(), lr=0.1)
+
+    def optimizers(self):
+        return {"scale": self.optimizer}
+
+    def update(self, batch):
+        loss = self.scale(batch).square().mean()
+        self.optimizer.zero_grad()
+        loss.backward()
+        self.optimizer.step()
+        return {"loss": loss.detach()}
+
+
+def test_a_finetuner_gets_the_learner_defaults_for_its_state_stream_and_group():
+    models = [_skill_agent().model for _ in range(2)]
+    tuners = [_ScaleFinetuner(model, None, None) for model in models]
+    tuners[0].update(torch.ones(3, 2))
+    state = tuners[0].training_state()
+    assert "scale.weight" in state["modules"] and any(k.startswith("model.") for k in state["modules"])
+    tuners[1].load_training_state(state)
+    assert torch.equal(tuners[1].scale.weight, tuners[0].scale.weight)
+    generator = torch.Generator()
+    tuners[0].use_generator(generator)
+    assert tuners[0].generator is generator and models[0].generator is generator
+    tuners[1].use_generator(torch.Generator())
+    group = stack_agents(tuners)
+    assert group.members == 2 and group.scale.weight.shape == (2, 2, 2)
+    # Member 1's state is the one its own fine-tuner held: the state it loaded.
+    assert torch.equal(member_training_state(group, 1)["modules"]["scale.weight"], state["modules"]["scale.weight"])
 
 
 def test_best_candidate_is_the_first_highest_return():

@@ -148,7 +148,7 @@ def test_the_td_loss_does_not_train_the_features_and_the_feature_loss_not_psi():
 def test_training_skills_replace_a_share_by_the_pseudo_inverse_of_the_feature_covariance():
     agent = tiny_agent("lap", mix_ratio=1.0)
     phi = agent.features(random_batch(6).next_obs).detach()
-    agent.generator = torch.Generator().manual_seed(3)
+    agent.use_generator(torch.Generator().manual_seed(3))
     z = agent.feature_skills(phi)
     g = torch.Generator().manual_seed(3)
     torch.randn(N, D, generator=g)  # the prior draw comes first

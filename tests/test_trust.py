@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -24,6 +25,7 @@ from dvfb.cli import main
 from dvfb.errors import NonFiniteLossError
 from dvfb.data import Batch
 from dvfb.runs import RunDir, latest_checkpoint, load_checkpoint, load_snapshot, save_checkpoint
+from dvfb.runs.layout import FinetuneRun
 from dvfb.training.metrics import MetricWindow
 from tiny import OBS, ACT, tiny_config, tiny_flags
 
@@ -107,7 +109,15 @@ BAD_PROTOCOL = [
     (["finetune", "--task", "point_mass_maze_reach_top_left", "--protocol", "urlb"],
      "--protocol urlb is not a protocol of 'fb'; choose one of dual_value, latent_search, online_inference"),
     (["finetune", "--task", "point_mass_maze_reach_top_left", "--protocol", "latent_search", "--finetune.eta", "1"],
-     "eta"),
+     "--finetune.eta is not an option of the latent_search protocol; it is an option of dual_value (--protocol)"),
+    (["finetune", "--task", "point_mass_maze_reach_top_left", "--finetune.method", "rela"],
+     "--finetune.method is not an option of the dual_value protocol; it is an option of latent_search "
+     "(--protocol)"),
+    (["finetune", "--task", "point_mass_maze_reach_top_left", "--finetune.cov-ridge", "0.1", "--finetune.rule", "ts"],
+     "--finetune.rule is not an option of the dual_value protocol; it is an option of online_inference "
+     "(--protocol)"),
+    (["finetune", "--task", "point_mass_maze_reach_top_left", "--finetune.init-critic", "all"],
+     "--finetune.init-critic is not an option of the dual_value protocol; it is an option of urlb (--protocol)"),
     (["finetune", "--task", "point_mass_maze_reach_top_left", "--protocol", "online_inference",
       "--finetune.beta", "-1"], "--finetune.beta -1.0 is out of range"),
     (["zeroshot", "--task", "point_mass_maze_reach_top_left", "point_mass_maze_reach_top_right",
@@ -455,6 +465,33 @@ def test_non_finite_rewards_or_goals_never_give_a_nan_skill(finished_run):
     with pytest.raises(ConfigError, match="non-finite"):
         model.infer_z(reward_fn=lambda next_obs: np.full(next_obs.shape[0], np.nan))
     assert np.isfinite(model.infer_z(obs, obs, np.ones(8, np.float32)).numpy()).all()
+
+
+@pytest.mark.parametrize("recorded", ["", None], ids=["empty protocol", "no protocol"])
+def test_a_fine_tuning_run_of_the_previous_version_resumes_with_its_fine_tuner_named(finished_run, tmp_path,
+                                                                                       recorded):
+    """A fine-tuning run of the method's own fine-tuner whose config.json records it as older
+    versions did (protocol "", or none at all) loads as that fine-tuner's, resumes, and ends where a
+    run that was never stopped ends; its config then names the fine-tuner."""
+    run = Path(shutil.copytree(finished_run, tmp_path / "copy"))
+    schedule = [*FINETUNE[:FINETUNE.index("--finetune.frames")], *FINETUNE[FINETUNE.index("--finetune.frames") + 2:]]
+    assert main(["finetune", str(run), *schedule, "--finetune.frames", "2000", "--name", "full"]) == 0
+    assert main(["finetune", str(run), *schedule, "--finetune.frames", "1000", "--name", "old"]) == 0
+    config_path = run / "finetune" / "old" / "config.json"
+    config = json.loads(config_path.read_text())
+    assert config["protocol"] == "dual_value"  # what this version records
+    if recorded is None:
+        del config["protocol"]
+    else:
+        config["protocol"] = recorded
+    config_path.write_text(json.dumps(config))
+    assert FinetuneRun.open(config_path.parent).config.protocol == "dual_value"
+    assert main(["finetune", str(run), *schedule, "--finetune.frames", "2000", "--name", "old", "--resume"]) == 0
+    assert json.loads(config_path.read_text())["protocol"] == "dual_value"
+    curve = lambda name: json.loads((run / "finetune" / name / "curve.json").read_text())  # noqa: E731
+    assert "protocol" not in curve("old")  # a curve names only a fine-tuner chosen instead of the method's
+    assert [p["returns"] for p in curve("old")["curve"]] == [p["returns"] for p in curve("full")["curve"]]
+    assert [p["frames"] for p in curve("old")["curve"]] == [0, 1000, 2000]
 
 
 def test_a_pointer_to_a_missing_checkpoint_deletes_nothing_on_resume(finished_run, tmp_path, capsys):

@@ -637,7 +637,7 @@ def test_bf16_update_keeps_fp32_state_and_close_losses():
     torch.manual_seed(0)
     fp32 = DVFBAgent(OBS, ACT, small_config(), small_exploration())
     bf16 = copy.deepcopy(fp32)
-    bf16.net_runner = NetRunner(PerfConfig(precision="bf16"), "cpu")
+    bf16.model.net_runner = NetRunner(PerfConfig(precision="bf16"), "cpu")
     batch = make_batch(40, 0, torch.float32)
     torch.manual_seed(5)
     m32 = fp32.update(batch)
@@ -709,7 +709,7 @@ def test_compile_failure_falls_back_to_eager_with_a_warning(monkeypatch, caplog)
     torch.manual_seed(0)
     agent = DVFBAgent(OBS, ACT, small_config(), small_exploration(), perf=PerfConfig(compile=True))
     reference = copy.deepcopy(agent)
-    reference.net_runner = NetRunner(None, "cpu")
+    reference.model.net_runner = NetRunner(None, "cpu")
     assert agent.net_runner.compiled
     batch = make_batch(40, 0, torch.float32)
     with caplog.at_level(logging.WARNING):

@@ -157,17 +157,20 @@ def _coerce(name: str, tp: Any, value: Any) -> Any:
     return value
 
 
-def from_dict(cls: type[T], data: dict, check: bool = True, prefix: str = "") -> T:
+def from_dict(cls: type[T], data: dict, check: bool = True, prefix: str = "",
+              section_types: dict[str, type] | None = None) -> T:
     """Build ``cls`` from a dict, rejecting unknown keys and wrongly typed values; with ``check``
     (the outermost call), also :func:`validate` the result, naming nested fields by their path
-    (``prefix`` is the path of ``cls`` itself, e.g. ``"inference."``)."""
+    (``prefix`` is the path of ``cls`` itself, e.g. ``"inference."``). ``section_types``: the
+    classes of sections that ``cls`` declares by a base class or ``Any`` (a fine-tuning run's
+    ``finetune`` section is its fine-tuner's config, a subclass of the schedule it declares)."""
     if not isinstance(data, dict):
         raise ConfigError(f"{cls.__name__}: expected a mapping of options, got {type(data).__name__}")
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
         raise ConfigError(f"unknown {cls.__name__} option(s): {', '.join(unknown)}")
-    types_ = _field_types(cls)
+    types_ = {**_field_types(cls), **(section_types or {})}
     kwargs = {k: _coerce(f"{cls.__name__}.{k}", types_[k], v) for k, v in data.items()}
     config = cls(**kwargs)
     if check:

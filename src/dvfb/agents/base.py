@@ -1,5 +1,5 @@
 """The two interfaces between the layers above and every method (docs/methods.md, "The agent
-interface"; docs/architecture.md, "Models and learners").
+interface"; docs/architecture.md, "A method: model and learner").
 
 A method is a :class:`Model` and a learner (:class:`Agent`):
 
@@ -11,12 +11,13 @@ A method is a :class:`Model` and a learner (:class:`Agent`):
   :meth:`Model.regress_skill`, :meth:`Model.skill_value`); and the modules a snapshot loads
   (:meth:`Model.snapshot_modules`). Zero-shot protocols, fine-tuners, ``dvfb.load`` and the analyses
   use models only.
-* the **learner** (:class:`Agent`) trains a model without rewards: it owns the model (its
-  networks are registered on the learner under their own names, so a learner's state is a flat
-  dict as it always was), the target networks, the optimisers and the components a method
-  composes, and :meth:`Agent.update`; :meth:`Agent.replay_needs` says how to sample the replay,
-  :meth:`Agent.pretrained_modules` what a snapshot keeps, :meth:`Agent.training_state` what a resume
-  checkpoint keeps. Acting and the skill are the model's.
+* the **learner** (:class:`Agent`, a :class:`~dvfb.nets.learner.Learner` as every fine-tuner is)
+  trains a model without rewards: it owns the model (its networks are registered on the learner
+  under their own names, so a learner's state is a flat dict as it always was), the target
+  networks, the optimisers and the components a method composes, and :meth:`Agent.update`;
+  :meth:`Agent.replay_needs` says how to sample the replay, :meth:`Agent.pretrained_modules` what a
+  snapshot keeps, :meth:`Agent.training_state` what a resume checkpoint keeps. Acting and the skill
+  are the model's.
 * **downstream** -- the method's family chooses the zero-shot protocol and the fine-tuner in its
   :class:`~dvfb.agents.registry.AgentSpec`.
 """
@@ -31,29 +32,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from dvfb.data import Batch
 from dvfb.errors import ConfigError
 from dvfb.nets import ACTION_EPS, HostActor, rollout_action
+from dvfb.nets.learner import Learner, ReplayNeeds  # noqa: F401  (ReplayNeeds: the methods import it from here)
 from dvfb.skills import NO_SKILL, SkillSpec
-
-
-@dataclass(frozen=True)
-class ReplayNeeds:
-    """How an agent's batches are drawn from the replay buffer (docs/methods.md, "Replay").
-
-    ``nstep``: rewards summed over n steps with ``discount = gamma^n`` and ``next_obs = s_{t+n}``,
-    never across an episode boundary (n = 3 for the URLB-style agents). ``need_future``: the batch
-    also carries ``s_{t+2}`` (FB's ``code_exact`` pairings).
-    """
-
-    batch_size: int
-    discount: float
-    nstep: int = 1
-    need_future: bool = False
-
-    def sample(self, replay, generator: torch.Generator | None = None) -> Batch:
-        return replay.sample(self.batch_size, self.discount, need_future=self.need_future, nstep=self.nstep,
-                             generator=generator)
 
 
 @dataclass(frozen=True)
@@ -230,23 +212,19 @@ class Model(nn.Module):
         return {}
 
 
-class Agent(nn.Module):
-    """Base class of every method's learner (see the module docstring). Subclasses set ``name``,
-    build their model and :meth:`adopt` it, and implement :meth:`from_config`,
+class Agent(Learner):
+    """Base class of every method's learner of pre-training (see the module docstring; the hooks
+    it shares with the fine-tuners are :class:`~dvfb.nets.learner.Learner`'s). Subclasses set
+    ``name``, build their model and :meth:`adopt` it, and implement :meth:`from_config`,
     :meth:`replay_needs`, :meth:`update`, :meth:`optimizers` and :meth:`pretrained_modules`."""
 
     name: ClassVar[str] = ""
-    # The run's random stream (Agent.use_generator); None: torch's global one.
-    generator: torch.Generator | None = None
-    # 0: an ordinary learner; N: a group of N members on stacked tensors (docs/members.md).
-    members: int = 0
     model: Model
     # The model's (Agent.adopt copies them): what the layers above read of a learner.
     skill: SkillSpec = NO_SKILL
     obs_dim: int
     action_dim: int
     device: torch.device
-    net_runner: Any
 
     @classmethod
     def from_config(cls, obs_dim: int, action_dim: int, config: Any, device: str | torch.device = "cpu") -> Agent:
@@ -263,12 +241,12 @@ class Agent(nn.Module):
     def adopt(self, model: Model) -> None:
         """Own ``model``: its networks become the learner's under their own names (the learner's
         state keeps its flat keys), the model itself is not a sub-module (no key twice); its skill,
-        dimensions, device and network runner are the learner's."""
+        dimensions and device are the learner's (its random stream and runner are read from it)."""
         object.__setattr__(self, "model", model)
         for name, module in model.named_children():
             self.add_module(name, module)
         self.skill, self.obs_dim, self.action_dim = model.skill, model.obs_dim, model.action_dim
-        self.device, self.net_runner = model.device, model.net_runner
+        self.device = model.device
 
     @property
     def skill_dim(self) -> int:
@@ -284,43 +262,9 @@ class Agent(nn.Module):
         ``member``: a group's member whose rollout it is (its networks are its slice)."""
         return self.sample_skill(1, generator=generator)[0]
 
-    def act(self, obs: np.ndarray, skills: torch.Tensor | None, explore: bool) -> np.ndarray:
-        return self.model.act(obs, skills, explore)
-
-    def nonfinite_hint(self, metric_names: list[str]) -> str:
-        return self.model.nonfinite_hint(metric_names)
-
-    def use_generator(self, generator: torch.Generator | None) -> None:
-        """Draw every random number of the learner and its model from ``generator``."""
-        for module in self.modules():
-            if hasattr(module, "generator"):
-                module.generator = generator
-        self.model.use_generator(generator)
-
-    # Learning ----------------------------------------------------------------------------------
-    def replay_needs(self) -> ReplayNeeds:
-        raise NotImplementedError
-
-    def update(self, batch: Batch) -> dict[str, torch.Tensor]:
-        raise NotImplementedError
-
-    # State -------------------------------------------------------------------------------------
-    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        raise NotImplementedError
-
     def pretrained_modules(self) -> dict[str, nn.Module]:
         """What a snapshot keeps (the model's modules, and what else the method's snapshots hold)."""
         raise NotImplementedError
-
-    def training_state(self) -> dict:
-        """Networks, running statistics and optimiser states (for resume)."""
-        return {"modules": self.state_dict(),
-                "optimizers": {k: o.state_dict() for k, o in self.optimizers().items()}}
-
-    def load_training_state(self, state: dict) -> None:
-        self.load_state_dict(state["modules"])
-        for k, o in self.optimizers().items():
-            o.load_state_dict(state["optimizers"][k])
 
 
 def no_skill_like(obs: torch.Tensor) -> torch.Tensor:

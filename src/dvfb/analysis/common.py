@@ -27,6 +27,7 @@ from dvfb.agents import AGENTS, get_spec
 from dvfb.config import to_dict
 from dvfb.errors import DvfbError
 from dvfb.files import read_json as read_json_file
+from dvfb.protocols import finetuner_class
 from dvfb.runs.layout import discover
 from dvfb.runs.presets import preset_config
 
@@ -199,11 +200,8 @@ class FinetuneRun:
         # The pre-training run's config names the variant (e.g. w/o CE); without it, the agent.
         pretrain = self.parent.config if self.parent is not None else {"agent": self.config.agent}
         name = method_name(pretrain, self.config.finetune)
-        protocol = getattr(self.config, "protocol", "")
-        if protocol:  # a fine-tuner chosen instead of the method's own: its own row (dvfb+lola)
-            from dvfb.protocols import finetuner_class  # lazy: the analyses load without the protocols
-
-            name += "+" + finetuner_class(protocol).label(self.config.finetune)
+        if not self.config.own_protocol:  # a fine-tuner chosen instead of the method's own: its own row (dvfb+lola)
+            name += "+" + finetuner_class(self.config.protocol).label(self.config.finetune)
         return name
 
     @property

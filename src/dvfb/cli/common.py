@@ -7,13 +7,14 @@ import argparse
 import contextlib
 import dataclasses
 import sys
+import textwrap
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from dvfb.config import INT_RANGE, SEED_MAX, add_arguments, merge, overrides_from_args
+from dvfb.config import INT_RANGE, SEED_MAX, add_arguments, flag_name, merge, overrides_from_args
 from dvfb.errors import ConfigError
 
 DEFAULT_PRESET = "small"
@@ -126,9 +127,10 @@ class PresetDefault:
 
 def add_protocol_arguments(p: argparse.ArgumentParser, kind: str, online: bool = False, prefix: str | None = None,
                            deprecated_prefix: str | None = None) -> None:
-    """``--inference.*`` or ``--finetune.*`` flags: the union of the families' fields, each once,
+    """``--inference.*`` flags, or ``dvfb zeroshot``'s options of the fine-tuners that infer the
+    task online (``kind`` "finetune", ``online``): the union of the protocols' fields, each once,
     named ``--<prefix>.*`` when ``prefix`` is given (``deprecated_prefix``: an older name that still
-    works, saying so on stderr).
+    works, saying so on stderr). ``dvfb finetune``'s options are :func:`add_finetune_arguments`.
 
     Which of them apply depends on the run's method; a flag its family lacks is an error naming
     the family's config class when the run is loaded. The defaults shown are those a run's preset
@@ -138,15 +140,50 @@ def add_protocol_arguments(p: argparse.ArgumentParser, kind: str, online: bool =
     prefix = prefix or kind
     seen: set[str] = set()
     for cls in protocol_classes(kind, online):
-        skip = tuple(f.name for f in dataclasses.fields(cls) if f.name in seen)
-        if len(skip) < len(dataclasses.fields(cls)):
-            group = p.add_argument_group(f"{prefix} options ({cls.__name__})")
-            defaults = cls()
-            text = None if online else (lambda name, d=defaults: PresetDefault(kind, name, _dotted(d, name)))
-            add_arguments(group, cls, prefix=f"{prefix}.", skip=skip, default_text=text,
-                          deprecated_prefix=f"{deprecated_prefix}." if deprecated_prefix else None,
-                          alias_action=DeprecatedAlias)
-        seen.update(f.name for f in dataclasses.fields(cls))
+        _option_group(p, f"{prefix} options ({cls.__name__})", None, cls, seen, kind, online, prefix,
+                      deprecated_prefix)
+
+
+def add_finetune_arguments(p: argparse.ArgumentParser) -> None:
+    """``dvfb finetune``'s ``--finetune.*`` flags, one group per registered fine-tuner under its
+    name after the schedule every fine-tuner shares; an option two fine-tuners share is listed in
+    the first one's group and named in the other's description. The run's fine-tuner takes only its
+    own options (:func:`dvfb.protocols.check_finetune_options` refuses the others)."""
+    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
+    from dvfb.agents import agent_names, get_spec
+    from dvfb.protocols import FINETUNERS, FinetuneSchedule
+
+    seen: set[str] = set()
+    _option_group(p, "finetune options of every protocol (FinetuneSchedule)", None, FinetuneSchedule, seen,
+                  "finetune")
+    holder: dict[str, str] = {}  # option -> the fine-tuner whose group lists it
+    for name, cls in FINETUNERS.items():
+        owners = [agent for agent in agent_names() if get_spec(agent).finetuner == name]
+        used = (f"the fine-tuner of {', '.join(owners)}" if owners else
+                f"chosen with --protocol {name} instead of {', '.join(cls.replaces)}")
+        shared = [f"{flag_name(f'finetune.{f.name}')} (listed under {holder[f.name]})"
+                  for f in dataclasses.fields(cls.config_cls) if f.name in holder]
+        description = textwrap.fill(used + (f"; also {', '.join(shared)}" if shared else ""), 100)
+        new = [f.name for f in dataclasses.fields(cls.config_cls) if f.name not in seen]
+        holder.update((key, name) for key in new)
+        _option_group(p, f"--protocol {name} ({cls.config_cls.__name__})", description, cls.config_cls, seen,
+                      "finetune")
+
+
+def _option_group(p: argparse.ArgumentParser, title: str, description: str | None, cls: type, seen: set[str],
+                  kind: str, online: bool = False, prefix: str | None = None,
+                  deprecated_prefix: str | None = None) -> None:
+    """One help group of the fields of ``cls`` that no earlier group has (``seen``, updated)."""
+    prefix = prefix or kind
+    skip = tuple(f.name for f in dataclasses.fields(cls) if f.name in seen)
+    if len(skip) < len(dataclasses.fields(cls)):
+        group = p.add_argument_group(title, description)
+        defaults = cls()
+        text = None if online else (lambda name, d=defaults: PresetDefault(kind, name, _dotted(d, name)))
+        add_arguments(group, cls, prefix=f"{prefix}.", skip=skip, default_text=text,
+                      deprecated_prefix=f"{deprecated_prefix}." if deprecated_prefix else None,
+                      alias_action=DeprecatedAlias)
+    seen.update(f.name for f in dataclasses.fields(cls))
 
 
 def _dotted(config: Any, name: str) -> Any:

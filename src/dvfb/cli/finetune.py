@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from dvfb.cli.common import (Formatter, add_protocol_arguments, add_snapshot_and_seed, progress_flag,
-                             protocol_overrides, torch_threads_flag)
+from dvfb.cli.common import (Formatter, add_finetune_arguments, add_protocol_arguments, add_snapshot_and_seed,
+                             progress_flag, protocol_overrides, torch_threads_flag)
 from dvfb.config import add_arguments, overrides_from_args
 
 def cmd_finetune(args: argparse.Namespace) -> int:
@@ -39,7 +39,9 @@ def register(sub, agent: str) -> None:
                                    "fresh critic with the pre-trained trunk, extrinsic n-step reward, the "
                                    "selected skill) for the DDPG baselines. Defaults come from the run's config, "
                                    "which its preset made (shown by preset below); another fine-tuner chosen with "
-                                   "--protocol starts from its own config's defaults.")
+                                   "--protocol starts from its own config's defaults. Each fine-tuner's "
+                                   "--finetune.* options are listed under its name; an option the run's "
+                                   "fine-tuner does not have is refused.")
     p.add_argument("run", nargs="+", help="pre-training run directory; several: the members of a group (one method "
                                           "and configuration, seeds aside), fine-tuned together in lockstep with "
                                           "batched updates and actions (docs/members.md)")
@@ -49,13 +51,14 @@ def register(sub, agent: str) -> None:
     p.add_argument("--protocol", default=None,
                    help="another fine-tuner the method may use (FB family and SF: latent_search, test-time search "
                         "over z; online_inference, task inference from interaction alone); its --finetune.* options "
-                        "then apply (default: the method's own; a resumed run keeps its own)")
+                        "then apply, those listed under its name (default: the method's own; a resumed run "
+                        "keeps its own)")
     p.add_argument("--resume", action="store_true", help="continue from the latest fine-tuning checkpoint")
     p.add_argument("--overwrite", action="store_true", help="replace an existing fine-tuning run")
     progress_flag(p)
     torch_threads_flag(p)
     add_protocol_arguments(p, "inference")
-    add_protocol_arguments(p, "finetune")
+    add_finetune_arguments(p)
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.runs.wandb_sink import LogConfig
 

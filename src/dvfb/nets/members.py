@@ -4,9 +4,10 @@ A *group* of N members is one agent whose every parameter, buffer and optimiser 
 leading axis of size N: member k's slice is exactly the tensor a separate run with seed k holds.
 A method file stays written for one seed; the shared blocks carry the axis:
 
-* :func:`stack_agents` turns N ordinary agents (built as N separate runs would build them) into one
-  agent over stacked tensors, in place of the first; :func:`member_training_state` and
-  :func:`member_slice` give member k's ordinary state back (checkpoints, snapshots);
+* :func:`stack_agents` turns N ordinary learners (:class:`~dvfb.nets.learner.Learner`: agents or
+  fine-tuners, built as N separate runs would build them), or N models, into one over stacked
+  tensors, in place of the first; :func:`member_training_state` and :func:`member_slice` give
+  member k's ordinary state back (checkpoints, snapshots);
 * ``nn.Linear`` and ``nn.LayerNorm`` become :class:`MemberLinear` / :class:`MemberLayerNorm` (one
   batched product for all members); the blocks with their own parameters (``TwinHead``,
   ``RunningMeanStd``, the reward modules) read ``module.members``;
@@ -25,6 +26,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 from torch.nn import functional as F_nn
+
+from dvfb.nets.learner import Learner
 
 
 class MemberGenerators(tuple):
@@ -204,9 +207,9 @@ def _stack_tensors(modules: list[nn.Module], mismatch: str) -> None:
             owner._buffers[name] = stacked
 
 
-def stack_agents(agents: list) -> object:
-    """One agent whose tensors stack those of ``agents`` (same method and config, built and seeded
-    as separate runs): the first agent, modified in place and returned.
+def stack_agents(agents: list[nn.Module]) -> nn.Module:
+    """One learner (or model) whose tensors stack those of ``agents`` (learners or models of one
+    method and config, built and seeded as separate runs): the first, modified in place and returned.
 
     Parameters keep their identity (``.data`` is replaced), so every optimiser, EMA list and cache
     that refers to them stays valid; optimiser states are stacked likewise. The stacked agent's
@@ -227,23 +230,22 @@ def stack_agents(agents: list) -> object:
     return lead
 
 
-def _with_model(agent) -> list:
-    """The agent's modules and, for a learner whose model is not one of them, the model itself
-    (its networks are the learner's; its own ``members`` and ``generator`` must follow)."""
+def _with_model(agent: nn.Module) -> list[nn.Module]:
+    """The agent's modules and, for a learner whose model is not one of them (a pre-training
+    agent's), the model itself (its networks are the learner's; its own ``members`` and
+    ``generator`` must follow)."""
     modules = list(agent.modules())
-    model = getattr(agent, "model", None)
-    if isinstance(model, nn.Module) and all(model is not m for m in modules):
-        modules.append(model)
+    if isinstance(agent, Learner) and all(agent.model is not m for m in modules):
+        modules.append(agent.model)
     return modules
 
 
-def _optimizers(agent) -> dict:
-    """The optimisers of a learner or fine-tuner; a model (inference only) has none."""
-    optimizers = getattr(agent, "optimizers", None)
-    return optimizers() if optimizers is not None else {}
+def _optimizers(agent: nn.Module) -> dict[str, torch.optim.Optimizer]:
+    """The optimisers of a learner; a model (inference only) has none."""
+    return agent.optimizers() if isinstance(agent, Learner) else {}
 
 
-def _optimizer_tensors(agent) -> dict[str, list[dict]]:
+def _optimizer_tensors(agent: nn.Module) -> dict[str, list[dict]]:
     """Each optimiser's per-parameter state, in parameter order."""
     out = {}
     for name, opt in _optimizers(agent).items():
@@ -252,7 +254,7 @@ def _optimizer_tensors(agent) -> dict[str, list[dict]]:
     return out
 
 
-def _stack_optimizer_states(lead, states: list[dict[str, list[dict]]]) -> None:
+def _stack_optimizer_states(lead: nn.Module, states: list[dict[str, list[dict]]]) -> None:
     for name, opt in _optimizers(lead).items():
         params = [p for group in opt.param_groups for p in group["params"]]
         for i, p in enumerate(params):
@@ -287,13 +289,13 @@ def member_slice(state, k: int):
     return state[k].clone() if isinstance(state, torch.Tensor) else state
 
 
-def member_training_state(agent, k: int) -> dict:
-    """Member k's :meth:`~dvfb.agents.base.Agent.training_state`, as its separate run holds it."""
+def member_training_state(agent: Learner, k: int) -> dict:
+    """Member k's :meth:`~dvfb.nets.learner.Learner.training_state`, as its separate run holds it."""
     return member_slice(agent.training_state(), k)
 
 
-def drop_members(agent, keep: list[int]) -> None:
-    """Keep only the members ``keep`` (indices, in order) of a stacked agent, in place: what a
+def drop_members(agent: Learner, keep: list[int]) -> None:
+    """Keep only the members ``keep`` (indices, in order) of a stacked learner, in place: what a
     group does when one member stops (a non-finite loss); the others continue unchanged."""
     index = torch.as_tensor(keep, dtype=torch.long)
     for owner, kind, name in list(_tensor_slots(agent)):

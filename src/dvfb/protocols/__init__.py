@@ -7,7 +7,10 @@ the agents reaches them through :func:`zero_shot_protocol` and :func:`finetuner_
 
 from __future__ import annotations
 
+import dataclasses
+
 from dvfb.agents import get_spec
+from dvfb.config import flag_name
 from dvfb.errors import ConfigError
 from dvfb.protocols import dual_value, latent_search, urlb, zero_shot  # noqa: F401  (registration)
 from dvfb.protocols import online_inference  # noqa: F401  (registration)
@@ -35,11 +38,11 @@ def finetuner_class(name: str) -> type[Finetuner]:
         raise ConfigError(f"unknown fine-tuner {name!r}; registered: {', '.join(FINETUNERS)}") from None
 
 
-def protocols_of(agent: str, finetuner: str = "") -> tuple[type[ZeroShotProtocol], type[Finetuner]]:
+def protocols_of(agent: str, finetuner: str | None = None) -> tuple[type[ZeroShotProtocol], type[Finetuner]]:
     """The zero-shot protocol and the fine-tuner of a registered method (``finetuner``: one the
-    method may choose instead of its own, :func:`finetuner_choices`; empty: its own)."""
+    method may choose instead of its own, :func:`finetuner_choices`; None: its own)."""
     spec = get_spec(agent)
-    return zero_shot_protocol(spec.zero_shot), finetuner_class(chosen_finetuner(agent, finetuner))
+    return zero_shot_protocol(spec.zero_shot), finetuner_class(resolve_finetuner(agent, finetuner))
 
 
 def finetuner_choices(agent: str) -> tuple[str, ...]:
@@ -48,10 +51,11 @@ def finetuner_choices(agent: str) -> tuple[str, ...]:
     return (own,) + tuple(name for name, cls in FINETUNERS.items() if own in cls.replaces)
 
 
-def chosen_finetuner(agent: str, protocol: str = "") -> str:
-    """The fine-tuner's name for ``--protocol`` (empty: the method's own); one line if the method
-    cannot use it."""
-    if not protocol:
+def resolve_finetuner(agent: str, protocol: str | None = None) -> str:
+    """The registered name of the fine-tuner a method fine-tunes with: ``protocol`` (``--protocol``),
+    or the method's own when None; one line if the method cannot use it. What a fine-tuning run
+    records and every later step reads is this name, never an empty one."""
+    if protocol is None:
         return get_spec(agent).finetuner
     choices = finetuner_choices(agent)
     if protocol not in choices:
@@ -59,5 +63,26 @@ def chosen_finetuner(agent: str, protocol: str = "") -> str:
     return protocol
 
 
+def finetuners_with_option(key: str) -> list[str]:
+    """The registered fine-tuners whose config has the option ``key`` (a field name)."""
+    return [name for name, cls in FINETUNERS.items() if key in {f.name for f in dataclasses.fields(cls.config_cls)}]
+
+
+def check_finetune_options(finetuner: str, options: dict) -> None:
+    """Refuse an option (``--finetune.*``) that the fine-tuner ``finetuner`` does not have, in one
+    line naming it and the protocols that have it, before its config is built."""
+    fields = {f.name for f in dataclasses.fields(finetuner_class(finetuner).config_cls)}
+    for key in options:
+        if key in fields:
+            continue
+        owners = finetuners_with_option(key)
+        flag = flag_name(f"finetune.{key}")
+        if not owners:
+            raise ConfigError(f"{flag} is not an option of any fine-tuning protocol")
+        raise ConfigError(f"{flag} is not an option of the {finetuner} protocol; it is an option of "
+                          f"{', '.join(owners)} (--protocol)")
+
+
 __all__ = ["FINETUNERS", "SKILL_SOURCES", "ZERO_SHOT_PROTOCOLS", "Finetuner", "FinetuneSchedule", "ZeroShotProtocol",
-           "chosen_finetuner", "finetuner_choices", "finetuner_class", "protocols_of", "zero_shot_protocol"]
+           "check_finetune_options", "finetuner_choices", "finetuner_class", "finetuners_with_option", "protocols_of",
+           "resolve_finetuner", "zero_shot_protocol"]

@@ -24,6 +24,7 @@ from torch import nn
 from dvfb.agents.registry import get_spec
 from dvfb.config import param, require_updates
 from dvfb.errors import ConfigError
+from dvfb.nets.learner import Learner, ReplayNeeds
 
 # Where the skill of a task can come from: interaction with the task (every protocol), samples of
 # states with rewards computed by a function or relabelled from a dataset's physics, or a goal
@@ -107,11 +108,14 @@ class FinetuneSchedule:
         return self.seed_frames
 
 
-class Finetuner(nn.Module):
+class Finetuner(Learner):
     """Base class of the fine-tuners: built as ``cls(model, skill, config)`` from the pre-trained
     model (:class:`~dvfb.agents.base.Model`) and the skill its zero-shot protocol found (None for a
-    single policy). A fine-tuner is the learner of fine-tuning: it owns its networks and optimisers
-    and trains the model's actor.
+    single policy). A fine-tuner is the learner of fine-tuning (:class:`~dvfb.nets.learner.Learner`,
+    whose hooks it shares with the agents of pre-training): it owns its networks and optimisers and
+    trains the model's actor. The model is one of its modules, so the default resume state
+    (:meth:`~dvfb.nets.learner.Learner.training_state`) holds the model's networks and the
+    fine-tuner's own, and its optimisers' states.
 
     ``uniform_seed_actions``: act uniformly during ``seed_frames`` (URLB) or with the policy from
     the first step (the FB family). :meth:`rollout_skill` gives the skill of every step (fixed by
@@ -132,36 +136,12 @@ class Finetuner(nn.Module):
     # Whether the return of every training episode goes into the curve file (protocols whose
     # claim is about tens of episodes of interaction: their per-episode curve in the report).
     records_episodes: ClassVar[bool] = False
-    members: int = 0  # a group's member count (docs/members.md); 0: one run
 
     def __init__(self, model, skill: torch.Tensor | None, config: Any):
         super().__init__()
         self.model, self.config = model, config
         # A buffer, so that a group's fine-tuner stacks its members' skills (docs/members.md).
         self.register_buffer("skill", None if skill is None else skill.detach().clone().to(model.device))
-
-    # What a group (docs/members.md) stacks: the model's modules and the fine-tuner's own, its
-    # optimisers' states, and its random stream (the model's).
-    @property
-    def generator(self):
-        return self.model.generator
-
-    def use_generator(self, generator) -> None:
-        self.model.use_generator(generator)
-
-    @property
-    def net_runner(self):
-        return self.model.net_runner
-
-    def act(self, obs, skills, explore: bool):
-        return self.model.act(obs, skills, explore)
-
-    def nonfinite_hint(self, metric_names: list[str]) -> str:
-        return self.model.nonfinite_hint(metric_names)
-
-    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        """The optimisers of fine-tuning (their states are stacked in a group)."""
-        raise NotImplementedError
 
     def update_networks(self) -> list[nn.Module]:
         """Every network the update calls (what ``perf.compile`` compiles)."""
@@ -210,22 +190,13 @@ class Finetuner(nn.Module):
         """The fine-tuning replay, for fine-tuners whose rollout skill is computed from it."""
 
     @classmethod
-    def needs_of(cls, model):
-        """How the fine-tuner of ``model`` samples its replay (:class:`~dvfb.agents.base.ReplayNeeds`),
+    def needs_of(cls, model) -> ReplayNeeds:
+        """How the fine-tuner of ``model`` samples its replay (:class:`~dvfb.nets.learner.ReplayNeeds`),
         known before it is built (the checks of a fine-tuning)."""
         raise NotImplementedError
 
-    def replay_needs(self):
+    def replay_needs(self) -> ReplayNeeds:
         return self.needs_of(self.model)
-
-    def update(self, batch) -> dict[str, torch.Tensor]:
-        raise NotImplementedError
-
-    def training_state(self) -> dict:
-        raise NotImplementedError
-
-    def load_training_state(self, state: dict) -> None:
-        raise NotImplementedError
 
 
 # How a method's task reward is linear in features, read from its registered zero-shot protocol (for

@@ -2,7 +2,9 @@
 format version (docs/architecture.md, "Run directories").
 
 * **Run configs** (``config.json``): a field that moved into a method's section since it was
-  written is moved there (:func:`migrate_run_config`).
+  written is moved there (:func:`migrate_run_config`); a fine-tuning run of the method's own
+  fine-tuner, which recorded no protocol (or an empty one), records its name
+  (:func:`migrate_finetune_run_config`).
 * **Run kinds**: runs written before ``meta.json`` recorded the kind of run are told apart by
   their config's fields (:func:`kind_from_config`).
 * **Resume checkpoints** (``checkpoints/*.pt``): format 2 resumes; format 1, written before runs
@@ -44,6 +46,15 @@ def migrate_run_config(data: dict, spec: Any) -> dict:
                 section, key = new.split(".", 1)
                 data[section] = {**data.get(section, {}), key: value}
     data.pop("update_z_every", None)  # methods without skills ignored the global period
+    return data
+
+
+def migrate_finetune_run_config(data: dict, spec: Any) -> dict:
+    """A fine-tuning config written by an older version, as today's (``spec``: the method's
+    :class:`~dvfb.agents.registry.AgentSpec`): a run of the method's own fine-tuner recorded an
+    empty ``protocol`` (or, before ``--protocol``, none); today it records the fine-tuner's name."""
+    if data.get("protocol", "") == "":
+        return {**data, "protocol": spec.finetuner}
     return data
 
 
@@ -95,4 +106,4 @@ def migrate_training_state(agent: str, state: dict) -> dict:
 
 
 __all__ = ["RESUME_FORMAT", "SNAPSHOT_FORMAT", "check_resume_format", "check_snapshot_format", "kind_from_config",
-           "migrate_run_config", "migrate_training_state"]
+           "migrate_finetune_run_config", "migrate_run_config", "migrate_training_state"]

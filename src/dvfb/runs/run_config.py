@@ -9,7 +9,8 @@ One run config describes a run completely and is saved as ``config.json`` in its
   told otherwise. :func:`run_config_class` builds that dataclass once per method, so loading stays
   strict: unknown keys and wrong types are errors.
 * A **fine-tuning run** (:class:`FinetuneRunConfig`): which snapshot of which pre-training run,
-  the task, and the ``inference`` and ``finetune`` sections (:func:`finetune_run_config_class`).
+  the task, the fine-tuner's registered name, and the ``inference`` and ``finetune`` sections of
+  its protocols (:func:`finetune_run_config_from_dict`).
 
 Configs written by older versions are read through :mod:`dvfb.runs.migrations`. The presets that
 build pre-training configs are :mod:`dvfb.runs.presets`.
@@ -29,8 +30,8 @@ from dvfb.data import ReplaySamplingConfig
 from dvfb.errors import ConfigError
 from dvfb.execution import DEVICES, PerfConfig
 from dvfb.files import read_json
-from dvfb.protocols import protocols_of
-from dvfb.runs.migrations import migrate_run_config
+from dvfb.protocols import FinetuneSchedule, protocols_of
+from dvfb.runs.migrations import migrate_finetune_run_config, migrate_run_config
 from dvfb.runs.wandb_sink import LogConfig
 
 # small, paper, code: every method's; a method may add its own (fbee: its authors' constants).
@@ -125,10 +126,10 @@ def run_config_class(agent: str) -> type:
     return cls
 
 
-def protocol_fields(agent: str, finetuner: str = "") -> list[tuple]:
-    """The ``inference`` and ``finetune`` sections of a method's configs: its protocols' configs
-    (``finetuner``: a fine-tuner the method may choose instead of its own)."""
-    zero_shot, finetuner = protocols_of(agent, finetuner)
+def protocol_fields(agent: str) -> list[tuple]:
+    """The ``inference`` and ``finetune`` sections of a method's pre-training config: its protocols'
+    configs."""
+    zero_shot, finetuner = protocols_of(agent)
     return [("inference", zero_shot.config_cls,
              field(default_factory=zero_shot.config_cls, metadata={"help": f"Zero-shot ({zero_shot.name})."})),
             ("finetune", finetuner.config_cls,
@@ -163,11 +164,11 @@ def load_run_config(path: str | Path) -> PretrainConfig:
 
 @dataclass
 class FinetuneRunConfig:
-    """A fine-tuning run: which pre-trained snapshot, which task, and the protocol.
-
-    A run's config is an instance of :func:`finetune_run_config_class` ``(agent)``, which adds the
-    family's ``inference`` and ``finetune`` sections.
-    """
+    """A fine-tuning run: which pre-trained snapshot, which task, the fine-tuner (``protocol``) and
+    its sections: ``inference``, the method's zero-shot protocol's config, and ``finetune``, the
+    fine-tuner's (a :class:`~dvfb.protocols.base.FinetuneSchedule` subclass declared beside it,
+    docs/adding_a_method.md, "A fine-tuning protocol"). Read with
+    :func:`finetune_run_config_from_dict`, which builds each section as its protocol's class."""
 
     pretrain_run: str = param("", "Path of the pre-training run directory.")
     agent: str = param("dvfb", "Agent of the pre-training run (copied for reports).")
@@ -176,37 +177,43 @@ class FinetuneRunConfig:
     snapshot: int = param(0, "Pre-training snapshot (frames) the agent starts from.")
     seed: int = seed_param(0, "Seed of the task environment and the fine-tuning randomness.")
     device: str = param("auto", "Torch device.")
-    protocol: str = param("", "The fine-tuner, when not the method's own (latent_search, online_inference); "
-                          "empty: the method's (docs/methods.md, \"Protocols\").")
+    protocol: str = param("", "The registered fine-tuner: the method's own, or one chosen instead with --protocol "
+                          "(latent_search, online_inference; docs/methods.md, \"Protocols\").")
     log: LogConfig = field(default_factory=LogConfig,
                            metadata={"help": "Where the metrics go besides metrics/ and tb/: Weights & Biases."})
+    # The zero-shot protocols' configs share no base class: each protocol's config_cls.
+    inference: Any = field(default=None, metadata={"help": "Zero-shot: the method's protocol's config."})
+    finetune: FinetuneSchedule = field(default_factory=FinetuneSchedule,
+                                       metadata={"help": "Fine-tuning: the fine-tuner's config."})
+
+    @property
+    def own_protocol(self) -> bool:
+        """Whether the fine-tuner is the method's own (not one chosen instead with ``--protocol``)."""
+        return self.protocol == get_spec(self.agent).finetuner
 
 
-@functools.cache
-def finetune_run_config_class(agent: str, protocol: str = "") -> type:
-    """The fine-tuning run-config dataclass of a registered method with its fine-tuner (``protocol``:
-    one it may choose instead of its own)."""
-    spec = get_spec(agent)
-    suffix = "".join(part.capitalize() for part in protocol.split("_"))
-    cls = dataclasses.make_dataclass(f"{spec.agent_cls.__name__}{suffix}FinetuneRunConfig",
-                                     protocol_fields(agent, protocol), bases=(FinetuneRunConfig,))
-    cls.__module__ = __name__
-    return cls
+def finetune_run_config_from_dict(data: dict, source: str = "config") -> FinetuneRunConfig:
+    """A fine-tuning run config from its JSON dict, strictly, older versions' configs migrated first
+    (a run of the method's own fine-tuner once recorded no protocol); errors name ``source``."""
+    if not isinstance(data, dict) or not isinstance(data.get("agent"), str):
+        raise ConfigError(f"{source}: not a dvfb fine-tuning config")
+    try:
+        data = migrate_finetune_run_config(data, get_spec(data["agent"]))
+        if not isinstance(data["protocol"], str):
+            raise ConfigError(f"FinetuneRunConfig.protocol: expected str, got {data['protocol']!r}")
+        zero_shot, finetuner = protocols_of(data["agent"], data["protocol"])
+        # A section an older config lacks is its protocol's defaults, as it was read then.
+        sections = {"inference": zero_shot.config_cls, "finetune": finetuner.config_cls}
+        return from_dict(FinetuneRunConfig, {**{name: {} for name in sections}, **data}, section_types=sections)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from exc
 
 
 def load_finetune_run_config(path: str | Path) -> FinetuneRunConfig:
-    """A fine-tuning run's ``config.json``, strictly, as its method's config class; errors name the file."""
-    data = read_json(Path(path), ConfigError)
-    if not isinstance(data, dict) or not isinstance(data.get("agent"), str):
-        raise ConfigError(f"{path}: not a dvfb fine-tuning config")
-    try:
-        protocol = data.get("protocol", "")
-        return from_dict(finetune_run_config_class(data["agent"], protocol if isinstance(protocol, str) else ""),
-                         data)
-    except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from exc
+    """A fine-tuning run's ``config.json``, strictly; errors name the file."""
+    return finetune_run_config_from_dict(read_json(Path(path), ConfigError), str(path))
 
 
 __all__ = ["DEFAULT_AGENT", "PRESETS", "FinetuneRunConfig", "PretrainConfig", "agent_sections",
-           "finetune_run_config_class", "load_finetune_run_config", "load_run_config", "protocol_fields",
+           "finetune_run_config_from_dict", "load_finetune_run_config", "load_run_config", "protocol_fields",
            "run_config_class", "run_config_from_dict"]

@@ -22,7 +22,6 @@ implementation serves a run and a group of runs (docs/members.md): a run is a gr
 from __future__ import annotations
 
 import contextlib
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,11 +35,12 @@ from dvfb.agents import get_spec
 from dvfb.config import merge, to_dict
 from dvfb.data import ReplayBuffer
 from dvfb.errors import CheckpointError, ConfigError
-from dvfb.protocols import chosen_finetuner, finetuner_class, zero_shot_protocol
+from dvfb.nets.learner import Learner
+from dvfb.protocols import Finetuner, check_finetune_options, finetuner_class, resolve_finetuner, zero_shot_protocol
 from dvfb.runs import RunDir, RunLock, check_writable
 from dvfb.runs.layout import FinetuneRun, PretrainRun
 from dvfb.runs.records import Curve, FinetuneSummary, curve_point
-from dvfb.runs.run_config import FinetuneRunConfig, finetune_run_config_class
+from dvfb.runs.run_config import FinetuneRunConfig
 from dvfb.runs.snapshots import load_model
 from dvfb.runs.wandb_sink import require_wandb
 from dvfb.training.evaluation import Evaluation, evaluate
@@ -106,13 +106,15 @@ def finetune(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
 
 @dataclass
 class _Member:
-    """A fine-tuning run checked and ready to start: its pre-training run and model, its config."""
+    """A fine-tuning run checked and ready to start: its pre-training run and model, its config and
+    its fine-tuner's class (the one ``run_config.protocol`` names)."""
 
     run: PretrainRun
     config: object
     model: object
     snapshot: int
     run_config: FinetuneRunConfig
+    finetuner_cls: type[Finetuner]
     path: Path
     task: str
 
@@ -123,17 +125,18 @@ def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume,
     run = open_run(run_path, torch_threads)
     config = run.config
     check_task_in_domain(task, config.domain)
-    if protocol is None and resume:  # a resumed run keeps the protocol it was started with
-        protocol = _saved_protocol(run.finetune_path(name or task))
-    protocol = chosen_finetuner(config.agent, protocol or "")
+    if protocol is None and resume:  # a resumed run keeps the fine-tuner it was started with
+        protocol = FinetuneRun.open(run.finetune_path(name or task)).config.protocol
+    protocol = resolve_finetuner(config.agent, protocol)
+    finetuner_cls = finetuner_class(protocol)
+    check_finetune_options(protocol, finetune or {})
     own = protocol == get_spec(config.agent).finetuner
     model, snapshot = load_model(run, snapshot, device)
-    finetuner_cls = finetuner_class(protocol)
     # The run config's finetune section is the method's own fine-tuner's; another starts from its defaults.
     base = config.finetune if own else finetuner_cls.config_cls()
-    run_config = finetune_run_config_class(config.agent, "" if own else protocol)(
+    run_config = FinetuneRunConfig(
         pretrain_run=str(run.path), agent=config.agent, domain=config.domain, task=task, snapshot=snapshot,
-        seed=config.seed if seed is None else seed, device=str(model.device), protocol="" if own else protocol,
+        seed=config.seed if seed is None else seed, device=str(model.device), protocol=protocol,
         inference=merge(config.inference, inference or {}, "inference."),
         finetune=merge(base, finetune or {}, "finetune."), log=merge(config.log, log or {}, "log."))
     require_wandb(run_config.log)
@@ -145,25 +148,14 @@ def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume,
         RunDir.open(path)  # names what is missing before anything else happens
     else:
         check_writable(path.parent)
-    return _Member(run, config, model, snapshot, run_config, path, task)
-
-
-def _saved_protocol(path: Path) -> str:
-    """The protocol a fine-tuning run directory was started with (empty: the method's own, or no run)."""
-    try:
-        data = json.loads((path / "config.json").read_text())
-    except (OSError, ValueError):
-        return ""  # the resume itself names what is missing
-    protocol = data.get("protocol", "") if isinstance(data, dict) else ""
-    return protocol if isinstance(protocol, str) else ""
+    return _Member(run, config, model, snapshot, run_config, finetuner_cls, path, task)
 
 
 def _check_group(members: list[_Member]) -> None:
     """What a group fine-tunes in lockstep: one method and configuration, one snapshot, one protocol."""
     check_one_method([(m.run, m.config) for m in members])
     first = members[0]
-    finetuner_class(chosen_finetuner(first.config.agent, first.run_config.protocol)).check_group(
-        first.run_config.finetune)
+    first.finetuner_cls.check_group(first.run_config.finetune)
     if len({m.snapshot for m in members}) != 1:
         raise ConfigError("the members' snapshots are of different frames; pass --snapshot")
     for m in members[1:]:
@@ -246,7 +238,7 @@ class FinetuneSession(RunSession):
         self.member, self.model = member, member.model
         self.run_config = self.config = member.run_config
         self.cfg, self.seed, self.task = member.run_config.finetune, member.run_config.seed, member.task
-        self.finetuner_cls = finetuner_class(chosen_finetuner(member.config.agent, member.run_config.protocol))
+        self.finetuner_cls = member.finetuner_cls
         self.resume = resume
         self.open(FinetuneRun, member.path, resume, overwrite)
 
@@ -316,7 +308,7 @@ class FinetuneSession(RunSession):
         if state is not None:
             self._write_curve()
 
-    def bind_member(self, learner, index: int | None) -> None:
+    def bind_member(self, learner: Learner, index: int | None) -> None:
         super().bind_member(learner, index)
         self._skill_row = None
 
@@ -371,7 +363,7 @@ class FinetuneSession(RunSession):
         self.run.write_curve(Curve(task=c.task, domain=c.domain, agent=c.agent, seed=c.seed, snapshot=c.snapshot,
                                    z=None if z is None else z.cpu().tolist(),
                                    inference_info=self.inference_info, curve=self.curve,
-                                   protocol=self.run_config.protocol or None,
+                                   protocol=None if c.own_protocol else c.protocol,
                                    episodes=self.episodes if self.finetuner_cls.records_episodes else None))
 
     def finish(self) -> None:

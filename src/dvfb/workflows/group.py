@@ -15,6 +15,7 @@ import numpy as np
 
 from dvfb.data import Batch
 from dvfb.errors import CheckpointError, ConfigError, NonFiniteLossError
+from dvfb.nets.learner import Learner
 from dvfb.nets.members import drop_members, stack_agents
 from dvfb.runs.run_config import agent_sections
 from dvfb.training.checkpointing import ResumeCheckpoints, checkpoint_note
@@ -51,13 +52,13 @@ class Group:
     :meth:`raise_if_stopped` then ends the command non-zero. A group of one stops as a run does.
     """
 
-    def __init__(self, sessions: list, learners: list, what: str, phase: str,
+    def __init__(self, sessions: list, learners: list[Learner], what: str, phase: str,
                  uniform: Callable[[int], bool] | None = None):
         self.sessions, self.what, self.phase = sessions, what, phase
         self.live = list(sessions)
         self.stopped: list[str] = []
         self.single = len(sessions) == 1
-        self.learner = learners[0] if self.single else stack_agents(learners)
+        self.learner: Learner = learners[0] if self.single else stack_agents(learners)
         self._bind()
         if self.single:
             self.window = sessions[0].window

@@ -21,6 +21,7 @@ import torch
 
 from dvfb.config import to_dict
 from dvfb.errors import CheckpointError, ConfigError
+from dvfb.nets.learner import Learner
 from dvfb.nets.members import member_slice
 from dvfb.runs import MetricsLogger, load_checkpoint, remove_orphaned_checkpoints, save_checkpoint
 from dvfb.runs.migrations import RESUME_FORMAT, check_resume_format
@@ -69,7 +70,7 @@ class RunSession:
     rng: np.random.Generator
     generator: torch.Generator
     index: int | None = None  # its member index in a group's stacked learner (None: its own learner)
-    learner: Any = None
+    learner: Learner | None = None  # its group's (bind_member): an agent or a fine-tuner
     logger: MetricsLogger
     window: Any
     window_state: dict | None = None  # the metric rows a resumed checkpoint carried (restore)
@@ -180,7 +181,7 @@ class RunSession:
         self.last_checkpoint = self.step
 
     # The learner ---------------------------------------------------------------------------------
-    def bind_member(self, learner, index: int | None) -> None:
+    def bind_member(self, learner: Learner, index: int | None) -> None:
         """Whose state this run saves: ``learner`` itself (``index`` None), or member ``index`` of a
         stacked group's (the index changes when a member before it stops)."""
         self.learner, self.index = learner, index
