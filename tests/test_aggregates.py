@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dvfb.analysis import aggregate as agg
-from dvfb.analysis.common import AnalysisError
+from dvfb.analysis import aggregate as agg, aggregate_report, normalise
+from dvfb.analysis.common import AnalysisError, Score
 from dvfb.analysis.report import make_report
 from dvfb.cli import main
 from dvfb.runs import write_json_atomic
@@ -365,3 +365,52 @@ def test_sweeps_give_the_supervised_reference_a_cell_per_task():
 
     with pytest.raises(ConfigError, match="set by the sweep itself"):
         spec.build({}, {"agents": ["supervised"], "overrides": {"supervised.task": "walker_run"}}, {}, {})
+
+
+def test_a_reference_that_never_reached_the_goal_normalises_nothing():
+    """A supervised agent that never reaches a maze goal still returns float dust (1e-125, a Gaussian
+    tolerance far from the goal): min-max must not divide a baseline's 1e-60 by it."""
+    def score(method: str, task: str, value: float) -> Score:
+        return Score("zeroshot", method, "point_mass_maze", task, 0, value, Path("x.json"))
+
+    scores = [score("supervised", "reached", 900.0), score("random", "reached", 0.0),
+              score("supervised", "never", 1e-125), score("random", "never", 0.0),
+              score("cic", "never", 1e-60)]
+    available = normalise.normalisers(scores)
+    minmax = available["minmax"]
+    assert minmax.covers("reached") and minmax("reached", 450.0) == pytest.approx(50.0)
+    assert not minmax.covers("never") and minmax.uncovered(["reached", "never"]) == ["never"]
+    assert normalise.choose("auto", ["reached", "never"], available) is None  # raw returns instead
+    with pytest.raises(AnalysisError, match=r"^the minmax reference is less than 0.01 above its floor on never"):
+        normalise.choose("minmax", ["reached", "never"], available)
+
+
+def test_each_domain_takes_the_normaliser_that_covers_its_own_tasks():
+    """Walker has a supervised reference above random on every task; the maze's reference never
+    reached two goals. Walker stays min-max, the maze falls to raw returns (without an optimality
+    gap, which is a shortfall below a normaliser's 100), and no all-domain aggregate mixes them."""
+    def score(method: str, domain: str, task: str, seed: int, value: float) -> Score:
+        return Score("zeroshot", method, domain, task, seed, value, Path(f"{method}{seed}.json"))
+
+    scores = []
+    for task in ("walker_walk", "walker_run"):
+        scores += [score("supervised", "walker", task, 0, 500.0), score("random", "walker", task, 0, 100.0)]
+        scores += [score("dvfb", "walker", task, s, 100.0 + 100.0 * s) for s in range(3)]
+    for task, reference in (("maze_a", 900.0), ("maze_b", 1e-125)):
+        scores += [score("supervised", "maze", task, 0, reference), score("random", "maze", task, 0, 0.0)]
+        scores += [score("dvfb", "maze", task, s, 10.0 * s) for s in range(3)]
+    result = aggregate_report.compute(scores, "zeroshot", "Table 1", bootstrap=aggregate_report.BootstrapConfig(200))
+    scopes = {scope.name: scope for scope in result.scopes}
+    assert sorted(scopes) == ["maze", "walker"] and result.normaliser is None and not result.uniform
+    assert scopes["walker"].normaliser.name == "minmax" and scopes["maze"].normaliser is None
+    # walker min-max: (100, 200, 300) -> 0, 25, 50 on both tasks; the maze's raw returns 0, 10, 20
+    assert scopes["walker"].metrics["dvfb"]["mean"].value == pytest.approx(25.0)
+    assert scopes["maze"].metrics["dvfb"]["mean"].value == pytest.approx(10.0)
+    assert "no aggregate over all domains: their scores are on different scales (walker: minmax, maze: raw " \
+           "episode returns)" in result.notes
+    md = aggregate_report.markdown(result, aggregate_report.BootstrapConfig(200), None)
+    maze = md.split("### maze")[1].split("### walker")[0]
+    assert "On raw episode returns" in maze and "| method | IQM | mean | median |\n" in maze
+    assert "On the minmax normaliser" in md.split("### walker")[1] and "optimality gap" in md.split("### walker")[1]
+    assert {row.split(",")[2] for row in aggregate_report.to_csv(result).splitlines()[1:]
+            if row.startswith("maze,dvfb,")} == {"iqm", "mean", "median"}

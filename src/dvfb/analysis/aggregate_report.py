@@ -41,19 +41,24 @@ class Scope:
     improvement: dict[tuple[str, str], agg.Estimate] = field(default_factory=dict)
     profiles: dict[str, agg.Profile] = field(default_factory=dict)
     dropped: list[str] = field(default_factory=list)  # tasks some method lacks
+    normaliser: Normaliser | None = None  # the scale of its scores (None: raw episode returns)
+
+    @property
+    def unit(self) -> str:
+        return "normalised score" if self.normaliser is not None else "episode return"
 
 
 @dataclass
 class Aggregates:
     kind: str  # "zeroshot" or "finetune"
     title: str
-    normaliser: Normaliser | None
+    normaliser: Normaliser | None  # every scope's, when they share one; else None (see each Scope)
     scopes: list[Scope]
     notes: list[str] = field(default_factory=list)
 
     @property
-    def unit(self) -> str:
-        return "normalised score" if self.normaliser is not None else "episode return"
+    def uniform(self) -> bool:
+        return len({_scale_name(scope.normaliser) for scope in self.scopes}) <= 1
 
 
 def _domains(scores: Sequence[Score]) -> list[str]:
@@ -68,7 +73,9 @@ def compute(scores: Sequence[Score], kind: str, title: str, requested: str = "au
             bootstrap: BootstrapConfig | None = None) -> Aggregates | None:
     """The aggregates of a table's scores; None when fewer than one method (beside the
     references) has results. Raises AnalysisError when an explicitly requested normaliser lacks
-    a reference."""
+    a reference. With ``auto``, each domain takes the first normaliser that covers its own tasks
+    (walker min-max beside a maze on raw returns, say), and the every-domain scope exists only
+    when the domains share one."""
     bootstrap = bootstrap or BootstrapConfig()
     methods = {s.method for s in scores if s.method not in REFERENCE_METHODS}
     if not methods:
@@ -76,37 +83,50 @@ def compute(scores: Sequence[Score], kind: str, title: str, requested: str = "au
     available = available_normalisers(scores)
     tasks = sorted({s.task for s in scores if s.method not in REFERENCE_METHODS})
     normaliser = choose(requested, tasks, available)
-    notes = []
-    if requested == "auto" and kind == "finetune" and SUPERVISED not in {s.method for s in scores}:
-        # The supervised reference is a zero-shot result (docs/reports.md): telling the user to run it
-        # would not change the fine-tuning aggregates, so the note says which normaliser applies.
-        if normaliser is None:
-            notes.append("fine-tuning aggregates are over raw episode returns: "
-                         + missing_reference("expert", tasks, available))
-        else:
-            notes.append(f"fine-tuning aggregates use the {normaliser.name} normaliser (the supervised reference "
-                         "normalises zero-shot results only)")
-    elif requested == "auto":
-        if normaliser is None:
-            notes.append("aggregates are over raw episode returns: "
-                         + missing_reference("supervised", tasks, available))
-        elif normaliser.name != "minmax":
-            lacking = "supervised" if normaliser.name == "expert" else "minmax"
-            notes.append(f"aggregates use the {normaliser.name} normaliser: "
-                         + missing_reference(lacking, tasks, available))
     domains = _domains([s for s in scores if s.method not in REFERENCE_METHODS])
-    scopes = []
     groups = [(d, [s for s in scores if s.domain == d]) for d in domains]
+    scales = {name: normaliser if requested != "auto" else
+              choose("auto", sorted({s.task for s in group if s.method not in REFERENCE_METHODS}), available)
+              for name, group in groups}
+    uniform = len({_scale_name(n) for n in scales.values()}) == 1
+    notes = []
+    lacking_by_scope = [(None, tasks, normaliser)] if uniform else [
+        (name, sorted({s.task for s in group if s.method not in REFERENCE_METHODS}), scales[name])
+        for name, group in groups]
+    for scope_name, scope_tasks, chosen in lacking_by_scope if requested == "auto" else ():
+        prefix = f"{scope_name}: " if scope_name else ""
+        if kind == "finetune" and SUPERVISED not in {s.method for s in scores}:
+            # The supervised reference is a zero-shot result (docs/reports.md): telling the user to run it
+            # would not change the fine-tuning aggregates, so the note says which normaliser applies.
+            if chosen is None:
+                notes.append(f"{prefix}fine-tuning aggregates are over raw episode returns: "
+                             + missing_reference("expert", scope_tasks, available))
+            else:
+                notes.append(f"{prefix}fine-tuning aggregates use the {chosen.name} normaliser (the supervised "
+                             "reference normalises zero-shot results only)")
+        elif chosen is None:
+            notes.append(f"{prefix}aggregates are over raw episode returns: "
+                         + missing_reference("supervised", scope_tasks, available))
+        elif chosen.name != "minmax":
+            lacking = "supervised" if chosen.name == "expert" else "minmax"
+            notes.append(f"{prefix}aggregates use the {chosen.name} normaliser: "
+                         + missing_reference(lacking, scope_tasks, available))
     if len(domains) > 1:
-        groups.insert(0, (ALL_DOMAINS, list(scores)))
+        if uniform:
+            groups.insert(0, (ALL_DOMAINS, list(scores)))
+            scales[ALL_DOMAINS] = next(iter(scales.values()))
+        else:
+            notes.append("no aggregate over all domains: their scores are on different scales ("
+                         + ", ".join(f"{d}: {_scale_name(scales[d])}" for d in domains) + ")")
+    scopes = []
     for name, group in groups:
         shared = agg.common_tasks(group)
         every = sorted({s.task for s in group if s.method not in REFERENCE_METHODS})
-        scope = Scope(name, shared, agg.score_matrices(group, normaliser, shared),
-                      dropped=[t for t in every if t not in shared])
+        scope = Scope(name, shared, agg.score_matrices(group, scales[name], shared),
+                      dropped=[t for t in every if t not in shared], normaliser=scales[name])
         if not scope.matrices:
             continue
-        _fill(scope, normaliser, bootstrap)
+        _fill(scope, bootstrap)
         scopes.append(scope)
         if scope.dropped:
             notes.append(f"{name}: {', '.join(scope.dropped)} left out of the aggregates (not every method has them)")
@@ -114,10 +134,19 @@ def compute(scores: Sequence[Score], kind: str, title: str, requested: str = "au
         if thin:
             notes.append(f"{name}: fewer than {agg.MIN_RUNS_FOR_CI} runs on some task for {', '.join(thin)}: "
                          "no confidence intervals (with so few runs they are not meaningful)")
-    return Aggregates(kind, title, normaliser, scopes, notes)
+    return Aggregates(kind, title, normaliser if uniform else None, scopes, notes)
 
 
-def _fill(scope: Scope, normaliser: Normaliser | None, b: BootstrapConfig) -> None:
+def _scale_name(normaliser: Normaliser | None) -> str:
+    return normaliser.name if normaliser is not None else "raw episode returns"
+
+
+def _metrics(scope: Scope) -> tuple[str, ...]:
+    # The optimality gap is the shortfall below a normaliser's 100: raw returns have no such line.
+    return agg.METRICS if scope.normaliser is not None else tuple(m for m in agg.METRICS if m != "optimality_gap")
+
+
+def _fill(scope: Scope, b: BootstrapConfig) -> None:
     methods = sorted(scope.matrices, key=method_sort_key)
     for method in methods:
         scope.metrics[method] = agg.aggregate_metrics(scope.matrices[method], samples=b.samples,
@@ -128,7 +157,7 @@ def _fill(scope: Scope, normaliser: Normaliser | None, b: BootstrapConfig) -> No
                 scope.improvement[(x, y)] = agg.probability_of_improvement(
                     scope.matrices[x], scope.matrices[y], samples=b.samples, confidence=b.confidence, seed=b.seed)
     flat = np.concatenate([m.flat for m in scope.matrices.values()])
-    high = max(100.0, float(flat.max())) if normaliser is not None else float(flat.max())
+    high = max(100.0, float(flat.max())) if scope.normaliser is not None else float(flat.max())
     low = min(0.0, float(flat.min()))
     thresholds = np.linspace(low, high, PROFILE_POINTS)
     for method in methods:
@@ -146,26 +175,36 @@ def _estimate(e: agg.Estimate, digits: int = 1) -> str:
     return f"{e.value:.{digits}f} [{e.low:.{digits}f}, {e.high:.{digits}f}]"
 
 
+def _scale(normaliser: Normaliser | None) -> str:
+    return (f"the {normaliser.name} normaliser: {normaliser.description}" if normaliser is not None
+            else "raw episode returns (no normaliser covers every task)")
+
+
 def markdown(result: Aggregates, bootstrap: BootstrapConfig, figure: str | None, heading_level: int = 2) -> str:
     hashes = "#" * heading_level
     level = int(round(100 * bootstrap.confidence))
-    scale = (f"{result.normaliser.name} normaliser: {result.normaliser.description}" if result.normaliser
-             else "raw episode returns (no normaliser covers every task)")
+    if not result.uniform:
+        scale = "each domain's own scale, named under its heading (no one normaliser covers every domain)"
+    else:
+        scale = _scale(result.scopes[0].normaliser if result.scopes else result.normaliser)
     parts = [f"{hashes} {result.title}: aggregates", "",
-             f"Over runs × tasks, on the {scale}. Point estimate [{level}% interval of a stratified bootstrap: "
+             f"Over runs × tasks, on {scale}. Point estimate [{level}% interval of a stratified bootstrap: "
              f"{bootstrap.samples} resamples, each task's runs resampled on their own, seed {bootstrap.seed}]. "
-             f"Optimality gap: mean shortfall below 100 (lower is better). No interval where a method has "
+             f"Optimality gap: mean shortfall below 100 (lower is better; normalised scores only). No interval where a method has "
              f"fewer than {agg.MIN_RUNS_FOR_CI} runs on a task.", ""]
     for scope in result.scopes:
         methods = sorted(scope.matrices, key=method_sort_key)
-        parts += [f"{hashes}# {scope.name}", "",
-                  f"Tasks: {', '.join(scope.tasks)}. " + "; ".join(
+        metrics = _metrics(scope)
+        parts += [f"{hashes}# {scope.name}", ""]
+        if not result.uniform:
+            parts += [f"On {_scale(scope.normaliser)}.", ""]
+        parts += [f"Tasks: {', '.join(scope.tasks)}. " + "; ".join(
                       f"{m} {scope.matrices[m].min_runs} run{'s' if scope.matrices[m].min_runs != 1 else ''}/task"
                       for m in methods) + ".", "",
-                  "| method | " + " | ".join(agg.METRIC_TITLES[k] for k in agg.METRICS) + " |",
-                  "|---|" + "---:|" * len(agg.METRICS)]
+                  "| method | " + " | ".join(agg.METRIC_TITLES[k] for k in metrics) + " |",
+                  "|---|" + "---:|" * len(metrics)]
         for m in methods:
-            parts.append(f"| {m} | " + " | ".join(_estimate(scope.metrics[m][k]) for k in agg.METRICS) + " |")
+            parts.append(f"| {m} | " + " | ".join(_estimate(scope.metrics[m][k]) for k in metrics) + " |")
         if len(methods) > 1:
             parts += ["", "Probability of improvement P(row > column): per task, the chance that a random run of "
                       "the row scores above one of the column (ties count a half), averaged over the tasks.", "",
@@ -185,16 +224,16 @@ def to_csv(result: Aggregates) -> str:
     writer.writerow(["scope", "method", "metric", "value", "low", "high", "runs_per_task", "tasks", "normaliser"])
     for scope in result.scopes:
         for method in sorted(scope.matrices, key=method_sort_key):
-            for metric in agg.METRICS:
+            for metric in _metrics(scope):
                 e = scope.metrics[method][metric]
                 writer.writerow([scope.name, method, metric, repr(e.value), "" if e.low is None else repr(e.low),
                                  "" if e.high is None else repr(e.high), scope.matrices[method].min_runs,
-                                 " ".join(scope.tasks), result.normaliser.name if result.normaliser else "none"])
+                                 " ".join(scope.tasks), scope.normaliser.name if scope.normaliser else "none"])
         for (x, y), e in scope.improvement.items():
             writer.writerow([scope.name, f"{x} > {y}", "probability_of_improvement", repr(e.value),
                              "" if e.low is None else repr(e.low), "" if e.high is None else repr(e.high),
                              min(scope.matrices[x].min_runs, scope.matrices[y].min_runs), " ".join(scope.tasks),
-                             result.normaliser.name if result.normaliser else "none"])
+                             scope.normaliser.name if scope.normaliser else "none"])
     return out.getvalue()
 
 
@@ -214,7 +253,7 @@ def plot_profiles(result: Aggregates, path: Path, confidence: float) -> Path:
             if p.low is not None:
                 ax.fill_between(p.thresholds, p.low, p.high, color=line.get_color(), alpha=0.2, linewidth=0)
         ax.set_title(scope.name)
-        ax.set_xlabel(f"{result.unit} τ" + (f" ({result.normaliser.name})" if result.normaliser else ""))
+        ax.set_xlabel(f"{scope.unit} τ" + (f" ({scope.normaliser.name})" if scope.normaliser else ""))
         ax.set_ylabel("fraction of runs × tasks with score > τ")
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)

@@ -7,9 +7,9 @@ and each domain this module computes
 
 * Table 1 at that budget: the mean ± spread over seeds per task (:mod:`dvfb.analysis.tables`);
 * the IQM over runs x tasks with its stratified bootstrap interval, per method
-  (:mod:`dvfb.analysis.aggregate`), on one fixed scale for every snapshot: the normaliser of the
-  report's final-snapshot aggregates (the supervised reference and the random policy at the final
-  budget), so that a rising curve is a real gain and not a moving yardstick;
+  (:mod:`dvfb.analysis.aggregate`), on one fixed scale for every snapshot: the domain's normaliser
+  in the report's final-snapshot aggregates (the supervised reference and the random policy at the
+  final budget), so that a rising curve is a real gain and not a moving yardstick;
 * the probability that the focal method (DVFB when the runs have it) beats each other method;
 * the methods ranked by IQM,
 
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -64,19 +64,24 @@ class Domain:
     ranking: dict[int, list[str]] = field(default_factory=dict)  # frames -> methods by IQM, best first
     tables: dict[int, Table] = field(default_factory=dict)  # frames -> Table 1 at that budget
     dropped: list[str] = field(default_factory=list)  # tasks not every method has at every snapshot
+    normaliser: Normaliser | None = None  # the scale of its curves (None: raw episode returns)
+
+    @property
+    def unit(self) -> str:
+        return f"{self.normaliser.name}-normalised score" if self.normaliser is not None else "episode return"
 
 
 @dataclass
 class Budget:
-    normaliser: Normaliser | None
     focus: str | None
     frames: list[int]
     domains: list[Domain]
     notes: list[str] = field(default_factory=list)
 
     @property
-    def unit(self) -> str:
-        return f"{self.normaliser.name}-normalised score" if self.normaliser is not None else "episode return"
+    def uniform(self) -> bool:
+        """Whether every domain's curves are on one scale."""
+        return len({d.unit for d in self.domains}) <= 1
 
 
 def has_budget_axis(scores: Sequence[Score]) -> bool:
@@ -88,11 +93,12 @@ def has_budget_axis(scores: Sequence[Score]) -> bool:
     return any(len(f) > 1 for f in frames.values())
 
 
-def compute(scores: Sequence[Score], random: Sequence[Score], normaliser: Normaliser | None, spread: str = "std",
-            bootstrap: BootstrapConfig | None = None) -> Budget | None:
-    """The budget curves of ``scores`` (from :func:`snapshot_scores`), on ``normaliser``'s scale
-    (the final-snapshot aggregates' normaliser; None: raw returns); ``random`` (random-policy
-    scores) only joins the per-snapshot tables. None when no method has two snapshots."""
+def compute(scores: Sequence[Score], random: Sequence[Score], normalisers: Mapping[str, Normaliser | None],
+            spread: str = "std", bootstrap: BootstrapConfig | None = None) -> Budget | None:
+    """The budget curves of ``scores`` (from :func:`snapshot_scores`), each domain on its scale in
+    ``normalisers`` (the final-snapshot aggregates' normaliser of that domain; None or absent: raw
+    returns); ``random`` (random-policy scores) only joins the per-snapshot tables. None when no
+    method has two snapshots."""
     if not has_budget_axis(scores):
         return None
     bootstrap = bootstrap or BootstrapConfig()
@@ -110,7 +116,8 @@ def compute(scores: Sequence[Score], random: Sequence[Score], normaliser: Normal
         shared = agg.common_tasks([s for s in as_methods if s.method != RANDOM])
         shared = [t for t in shared if all(_has_task(as_methods, t, f, m)
                                            for f in frames for m in _methods_at(as_methods, f))]
-        result = Domain(domain, shared, dropped=[t for t in every if t not in shared])
+        normaliser = normalisers.get(domain)
+        result = Domain(domain, shared, dropped=[t for t in every if t not in shared], normaliser=normaliser)
         if result.dropped:
             notes.append(f"{domain}: {', '.join(result.dropped)} left out of the budget curves (not every method "
                          "has them at every snapshot)")
@@ -140,7 +147,7 @@ def compute(scores: Sequence[Score], random: Sequence[Score], normaliser: Normal
     if thin:
         notes.append(f"budget curves: fewer than {agg.MIN_RUNS_FOR_CI} runs per task for {', '.join(thin)}: no "
                      "interval at those points")
-    return Budget(normaliser, focus, frames, domains, notes)
+    return Budget(focus, frames, domains, notes)
 
 
 def _as_method(score: Score) -> Score:
@@ -179,12 +186,16 @@ def _estimate(e: agg.Estimate, digits: int = 1) -> str:
     return f"{e.value:.{digits}f} [{e.low:.{digits}f}, {e.high:.{digits}f}]"
 
 
+def _scale(normaliser: Normaliser | None) -> str:
+    return (f"the {normaliser.name} normaliser of the final snapshot ({normaliser.description}), the same for "
+            "every snapshot" if normaliser is not None else "raw episode returns (no normaliser covers every task)")
+
+
 def markdown(budget: Budget, bootstrap: BootstrapConfig, figure: str | None, heading_level: int = 2) -> str:
     hashes = "#" * heading_level
     level = int(round(100 * bootstrap.confidence))
-    scale = (f"the {budget.normaliser.name} normaliser of the final snapshot ({budget.normaliser.description}), "
-             "the same for every snapshot" if budget.normaliser is not None
-             else "raw episode returns (no normaliser covers every task)")
+    scale = (_scale(budget.domains[0].normaliser) if budget.uniform and budget.domains
+             else "each domain's own scale, named under its heading (no one normaliser covers every domain)")
     parts = [f"{hashes} {TITLE}", "",
              f"Every snapshot's zero-shot results. IQM over runs × tasks on {scale}, with its {level}% interval "
              f"of a stratified bootstrap ({bootstrap.samples} resamples, seed {bootstrap.seed}); no interval where "
@@ -195,6 +206,8 @@ def markdown(budget: Budget, bootstrap: BootstrapConfig, figure: str | None, hea
     for domain in budget.domains:
         frames = [f for f in budget.frames if any(p.frames == f for pts in domain.curves.values() for p in pts)]
         parts += [f"{hashes}# {domain.name}", ""]
+        if not budget.uniform:
+            parts += [f"On {_scale(domain.normaliser)}.", ""]
         if domain.curves:
             parts += [f"IQM by pre-training frames (tasks: {', '.join(domain.tasks)}):", "",
                       "| method | " + " | ".join(f"{f:,}" for f in frames) + " |", "|---|" + "---:|" * len(frames)]
@@ -228,8 +241,8 @@ def to_csv(budget: Budget) -> str:
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(["domain", "frames", "method", "metric", "value", "low", "high", "runs_per_task", "tasks",
                      "normaliser"])
-    scale = budget.normaliser.name if budget.normaliser is not None else "none"
     for domain in budget.domains:
+        scale = domain.normaliser.name if domain.normaliser is not None else "none"
         for method in sorted(domain.curves, key=method_sort_key):
             for p in domain.curves[method]:
                 writer.writerow([domain.name, p.frames, method, "iqm", repr(p.iqm.value), _bound(p.iqm.low),
@@ -253,7 +266,8 @@ def plot(budget: Budget, path: Path, confidence: float) -> Path:
         raise AnalysisError("no domain has budget curves to draw")
     n = len(domains)
     fig = Figure(figsize=(max(6.5, 5.4 * n), 4.4), dpi=100, layout="constrained")
-    fig.suptitle(f"{TITLE}: IQM of the {budget.unit}\n({int(round(100 * confidence))}% stratified bootstrap bands)",
+    unit = domains[0].unit if budget.uniform else "score (each panel's scale)"
+    fig.suptitle(f"{TITLE}: IQM of the {unit}\n({int(round(100 * confidence))}% stratified bootstrap bands)",
                  fontsize=11)
     for i, domain in enumerate(domains):
         ax = fig.add_subplot(1, n, i + 1)
@@ -265,11 +279,11 @@ def plot(budget: Budget, path: Path, confidence: float) -> Path:
             if all(p.iqm.has_interval for p in points):
                 ax.fill_between(x, [p.iqm.low for p in points], [p.iqm.high for p in points], color=line.get_color(),
                                 alpha=0.18, linewidth=0)
-        if budget.normaliser is not None and budget.normaliser.floor:
+        if domain.normaliser is not None and domain.normaliser.floor:
             ax.axhline(0.0, color="grey", linewidth=0.8, linestyle=":", label="random policy")
         ax.set_title(domain.name)
         ax.set_xlabel("pre-training frames")
-        ax.set_ylabel(f"IQM ({budget.unit})")
+        ax.set_ylabel(f"IQM ({domain.unit})")
         ax.set_xticks(budget.frames)
         ax.set_xticklabels([f"{f // 1000}k" if f % 1000 == 0 else str(f) for f in budget.frames])
         ax.grid(alpha=0.3)

@@ -10,8 +10,10 @@ Three normalisers, each ``100 * (x - floor) / (ceiling - floor)`` per task:
 * ``minmax`` -- random policy at 0 and supervised reference at 100: floor the mean return of the
   random-policy files, ceiling the supervised mean.
 
-A task without its reference has no normalised score (a gap); a reference no better than the floor
-(ceiling <= floor) has none either, and the report says so rather than dividing by it.
+A task without its reference has no normalised score (a gap); a reference less than
+:data:`MIN_RANGE` above the floor has none either, and the report says so rather than dividing by
+it (a supervised agent that never reached a maze goal returns 1e-125, not 0: divided by that, a
+baseline's 1e-60 became a score of 1e67).
 """
 
 from __future__ import annotations
@@ -37,6 +39,10 @@ NORMALISERS = ("expert", "supervised", "minmax")
 CHOICES = ("auto", *NORMALISERS, "none")
 # "auto" takes the first normaliser of this order that covers every task of the scores.
 AUTO_ORDER = ("minmax", "supervised", "expert")
+# The least ceiling - floor that normalises a task: far below any return a DMC agent earns by doing
+# something (episodes run 0-1000) and below one success in 10 episodes (success rates run 0-1),
+# far above the float dust of a reward that is a Gaussian tolerance of the distance to a goal.
+MIN_RANGE = 0.01
 
 
 @dataclass(frozen=True)
@@ -49,7 +55,7 @@ class Normaliser:
     floor: dict[str, float] = field(default_factory=dict)
 
     def covers(self, task: str) -> bool:
-        return task in self.ceiling and self.ceiling[task] > self.floor.get(task, 0.0)
+        return task in self.ceiling and self.ceiling[task] - self.floor.get(task, 0.0) >= MIN_RANGE
 
     def __call__(self, task: str, value: float) -> float:
         floor = self.floor.get(task, 0.0)
@@ -96,7 +102,8 @@ def missing_reference(name: str, tasks: Sequence[str], available: dict[str, Norm
         fix += "; min-max also needs --random files of those tasks"
     below = [t for t in lacking if name in available and t in available[name].ceiling]
     if below:
-        return f"the supervised reference is not above the random policy on {', '.join(below)}: no min-max score"
+        return (f"the {name} reference is less than {MIN_RANGE} above its floor on {', '.join(below)}: "
+                f"no {name} score")
     return f"no {name} reference for {what}: {fix}"
 
 

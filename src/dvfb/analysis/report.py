@@ -131,7 +131,8 @@ def make_report(paths: Sequence[str | os.PathLike], out_dir: str | os.PathLike, 
     planned = _outputs(out_dir, bool(zs or rnd), bool(ft), (bool(zs_success or rnd_success), bool(ft_success)))
     final = report.aggregates.get("zeroshot")
     report.budget = budget_curves.compute(budget_curves.snapshot_scores(runs.pretrain), rnd,
-                                          final.normaliser if final is not None else None, spread, bootstrap)
+                                          {scope.name: scope.normaliser for scope in final.scopes}
+                                          if final is not None else {}, spread, bootstrap)
     if report.budget is not None:
         planned += [out_dir / f"budget_zeroshot.{suffix}" for suffix in ("md", "csv", "png")]
     published = None
