@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 
 
 @dataclass(frozen=True)

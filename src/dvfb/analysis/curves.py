@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from dvfb.analysis.aggregate import mean_interval
-from dvfb.analysis.common import AnalysisError, FinetuneRun, method_sort_key
+from dvfb.analysis.common import AnalysisError, FinetuneEntry, method_sort_key
 from dvfb.analysis.tables import STD_DDOF
 
 
@@ -34,7 +34,7 @@ class CurveBand:
     high: np.ndarray | None = None
 
 
-def load_curves(runs: Sequence[FinetuneRun], labels: Mapping[Path, str] | None = None
+def load_curves(runs: Sequence[FinetuneEntry], labels: Mapping[Path, str] | None = None
                 ) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
     """``{task: {method: [(frames, mean_return), ...one per run]}}`` from the runs' curve.json; a run
     whose curve file ``labels`` names is under that method (its table column, e.g. its budget's)."""
@@ -51,7 +51,7 @@ def load_curves(runs: Sequence[FinetuneRun], labels: Mapping[Path, str] | None =
     return curves
 
 
-def load_episode_curves(runs: Sequence[FinetuneRun], labels: Mapping[Path, str] | None = None
+def load_episode_curves(runs: Sequence[FinetuneEntry], labels: Mapping[Path, str] | None = None
                         ) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
     """``{task: {method: [(episode, return), ...one per run]}}``: the return of every training
     episode of the protocols that record them (test-time search, online task inference), against
@@ -66,7 +66,7 @@ def load_episode_curves(runs: Sequence[FinetuneRun], labels: Mapping[Path, str] 
     return curves
 
 
-def _label(run: FinetuneRun, labels: Mapping[Path, str] | None) -> str:
+def _label(run: FinetuneEntry, labels: Mapping[Path, str] | None) -> str:
     return (labels or {}).get(run.run.curve_path, run.method)
 
 

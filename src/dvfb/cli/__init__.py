@@ -18,7 +18,7 @@ from dvfb import __version__
 from dvfb.cli import (analyze, dataset, demo, finetune, info, pretrain, random_policy, report, share, status,
                       supervised, sweep, video, zeroshot)
 from dvfb.cli.common import Formatter, Parser, unknown_option_message
-from dvfb.errors import DvfbError, RunInterrupted
+from dvfb.core.errors import DvfbError, RunInterrupted
 
 # The order of `dvfb --help`.
 COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo, sweep, status, report, analyze, video,

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from dvfb.config import INT_RANGE, SEED_MAX, add_arguments, flag_name, merge, overrides_from_args
-from dvfb.errors import ConfigError
+from dvfb.core.config import INT_RANGE, SEED_MAX, add_arguments, flag_name, merge, overrides_from_args
+from dvfb.core.errors import ConfigError
 
 DEFAULT_PRESET = "small"
 
@@ -40,7 +40,7 @@ def unknown_option_message(args: argparse.Namespace, extra: list[str]) -> str:
     if getattr(args, "command", None) == "pretrain":
         # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
         from dvfb.agents import agent_names
-        from dvfb.config import canonical_key, field_type
+        from dvfb.core.config import canonical_key, field_type
         from dvfb.runs.run_config import run_config_class
 
         for word in extra:

@@ -13,7 +13,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb.data.datasets import EPISODES_DIR, describe
     from dvfb.training.progress import progress_bars
-    from dvfb.workflows.datasets import default_export_dir, export_run
+    from dvfb.workflows.dataset_export import default_export_dir, export_run
     from dvfb.workflows.resources import use_threads
 
     use_threads(args.torch_threads)

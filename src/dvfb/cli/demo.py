@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from dvfb.cli.common import integer, progress_flag
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """The bundled pre-trained DVFB walker zero-shot on its 4 tasks against a random policy, by its
@@ -20,7 +20,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
     from dvfb import envs
     from dvfb.workflows.video import record_video
-    from dvfb.errors import DvfbError
+    from dvfb.core.errors import DvfbError
     from dvfb.runs.export import unpack_export
     from dvfb.runs.presets import preset_config
     from dvfb.workflows.pretrain import pretrain

@@ -6,7 +6,7 @@ import argparse
 
 from dvfb.cli.common import (Formatter, add_finetune_arguments, add_protocol_arguments, add_snapshot_and_seed,
                              progress_flag, protocol_overrides, torch_threads_flag)
-from dvfb.config import add_arguments, overrides_from_args
+from dvfb.core.config import add_arguments, overrides_from_args
 
 def cmd_finetune(args: argparse.Namespace) -> int:
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from dvfb.cli.common import (DEFAULT_PRESET, Formatter, default_run_dir, member_run_dirs, pretrain_config,
                              progress_flag, seed_list)
-from dvfb.config import add_arguments
+from dvfb.core.config import add_arguments
 
 def cmd_pretrain(args: argparse.Namespace) -> int:
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from dvfb.cli.common import integer, seed_value, torch_threads_flag
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 
 
 def cmd_random_policy(args: argparse.Namespace) -> int:

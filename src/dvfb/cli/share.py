@@ -23,7 +23,7 @@ def cmd_push(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.errors import ConfigError, RemoteError
+    from dvfb.core.errors import ConfigError, RemoteError
     from dvfb.runs.export import is_export
 
     path = Path(args.model)

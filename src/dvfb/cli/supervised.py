@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from dvfb.cli.common import DEFAULT_PRESET, Formatter, progress_flag
-from dvfb.config import add_arguments, merge, overrides_from_args
+from dvfb.core.config import add_arguments, merge, overrides_from_args
 
 AGENT = "supervised"
 

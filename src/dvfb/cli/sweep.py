@@ -17,8 +17,8 @@ import typing
 from pathlib import Path
 
 from dvfb.cli.common import Formatter
-from dvfb.config import add_arguments, flag_name, overrides_from_args, to_dict
-from dvfb.errors import ConfigError
+from dvfb.core.config import add_arguments, flag_name, overrides_from_args, to_dict
+from dvfb.core.errors import ConfigError
 
 # argparse destination prefix of the pre-training config flags.
 _OVERRIDE = "override:"

@@ -21,7 +21,7 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
     if args.protocol is not None:
         return _online(args)
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.errors import ConfigError
+    from dvfb.core.errors import ConfigError
 
     if args.resume:
         raise ConfigError("--resume continues a zero-shot protocol that runs in the task: pass --protocol with it")
@@ -72,7 +72,7 @@ def _online(args: argparse.Namespace) -> int:
     runs in the task on the fine-tuning loop (its budget, resume and evaluations), under
     ``RUN/finetune/<task>.<protocol>/``."""
     # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.errors import ConfigError
+    from dvfb.core.errors import ConfigError
     from dvfb.protocols import FINETUNERS
 
     cls = FINETUNERS.get(args.protocol)

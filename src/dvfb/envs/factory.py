@@ -27,7 +27,7 @@ def make(
         render_mode: None or ``"rgb_array"``.
 
     Raises:
-        dvfb.errors.ConfigError: unknown name (the message lists the valid names), or a task
+        dvfb.core.errors.ConfigError: unknown name (the message lists the valid names), or a task
             whose optional extra is not installed (the message says how to install it).
     """
     task_spec = resolve_task(name, reward_free=reward_free)

@@ -28,11 +28,11 @@ import torch
 
 from dvfb import __version__
 from dvfb.agents import Model, make_model
-from dvfb.config import to_dict
+from dvfb.core.config import to_dict
+from dvfb.core.errors import CheckpointError, ConfigError, RunDirError
+from dvfb.core.files import read_json, write_json_atomic
 from dvfb.data import ReplayBuffer
 from dvfb.data.buffer import PHYSICS_COLUMN
-from dvfb.errors import CheckpointError, ConfigError, RunDirError
-from dvfb.files import read_json, write_json_atomic
 from dvfb.runs.directory import EXPORT_FORMAT, check_writable, is_export_config
 from dvfb.runs.layout import PRETRAIN, PretrainRun, run_kind
 from dvfb.runs.run_config import PretrainConfig, run_config_from_dict

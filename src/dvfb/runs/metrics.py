@@ -9,8 +9,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import IO, Any
 
-from dvfb.errors import RunDirError
-from dvfb.files import _atomic_write
+from dvfb.core.errors import RunDirError
+from dvfb.core.files import _atomic_write
 from dvfb.runs.directory import RunDir, _as_run_dir, _check_name
 
 

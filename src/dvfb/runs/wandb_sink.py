@@ -29,9 +29,9 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
-from dvfb.config import param
-from dvfb.errors import ConfigError, RunDirError
-from dvfb.files import _atomic_write
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError, RunDirError
+from dvfb.core.files import _atomic_write
 from dvfb.runs.directory import RunDir
 
 WANDB_MODES = ("auto", "online", "offline")

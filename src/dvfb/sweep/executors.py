@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from dvfb.errors import DvfbError, RunInterrupted
+from dvfb.core.errors import DvfbError, RunInterrupted
 from dvfb.runs import read_json, write_json_atomic
 from dvfb.runs.machine import cores
 from dvfb.sweep import spec

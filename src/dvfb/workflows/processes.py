@@ -24,8 +24,8 @@ import traceback
 from multiprocessing.connection import wait
 from typing import Any, Callable, Sequence
 
-from dvfb import errors
-from dvfb.errors import DvfbError, RunInterrupted
+from dvfb.core import errors
+from dvfb.core.errors import DvfbError, RunInterrupted
 from dvfb.runs.machine import cores
 
 
@@ -144,8 +144,8 @@ def run_in_processes(target: Callable, calls: Sequence[tuple], threads: int, nam
     Once they train, a child that dies (``kill -9``, the out-of-memory killer) or fails stops the
     others with SIGTERM, so that each writes a checkpoint and the group resumes together. Returns when
     every child has ended; raises, after all have ended, the children's errors as one
-    :class:`~dvfb.errors.DvfbError` (the first child's class; a signal received here, or one that
-    killed a child, makes it :class:`~dvfb.errors.RunInterrupted` with that signal).
+    :class:`~dvfb.core.errors.DvfbError` (the first child's class; a signal received here, or one that
+    killed a child, makes it :class:`~dvfb.core.errors.RunInterrupted` with that signal).
     """
     context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch's threads
     children, pipes = [], []

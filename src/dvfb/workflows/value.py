@@ -33,7 +33,7 @@ import torch
 from dvfb import envs
 from dvfb.analysis.common import AnalysisError, json_safe
 from dvfb.analysis.statistics import binned_spearman, spearman
-from dvfb.config import to_dict
+from dvfb.core.config import to_dict
 from dvfb.nets import project_to_sphere
 from dvfb.runs import check_writable, write_json_atomic
 from dvfb.runs.snapshots import load_model

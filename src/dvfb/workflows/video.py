@@ -28,7 +28,7 @@ import torch
 
 from dvfb import envs
 from dvfb.analysis.common import AnalysisError
-from dvfb.errors import DvfbError
+from dvfb.core.errors import DvfbError
 from dvfb.runs import check_writable
 from dvfb.runs.snapshots import load_model
 from dvfb.training.evaluation import run_episode
