@@ -16,9 +16,10 @@ its layer, its lines, the rooms it imports and its function-level imports. It re
 * a top-level module other than the face (every module lives in its layer's folder);
 * a folder that is no layer of :data:`LAYERS`;
 * an import that runs up a layer;
-* a function-level import (an import inside a function or method) of another layer without a
-  comment, on its line or on the line above its block of imports, that says why it is not at the
-  top of its module.
+* a function-level import (an import inside a function or method, of dvfb or of any other package)
+  without a comment, on its line or on the line above its block of imports, that says why it is not
+  at the top of its module: a measured cost at start-up (matplotlib, the API behind ``dvfb.load``),
+  an optional extra that may be absent, an import that must follow a setting (MUJOCO_GL).
 
     python scripts/layers.py           # the table; exit status 1 when the contract is broken
     python scripts/layers.py --json    # the same as JSON
@@ -31,6 +32,7 @@ from __future__ import annotations
 import argparse
 import ast
 import json
+import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -89,12 +91,18 @@ def _resolve(node: ast.ImportFrom, module: str, is_package: bool) -> str:
     return ".".join(base + ([node.module] if node.module else []))
 
 
+# A linter's directive is no reason: ``# noqa: F401`` alone says nothing of why.
+_DIRECTIVE = re.compile(r"^(noqa(:\s*[A-Z]+[0-9]+(,\s*[A-Z]+[0-9]+)*)?|type:\s*ignore(\[[^]]*\])?|isort:\s*\w+)")
+
+
 def _reason(lines: list[str], lineno: int) -> str:
-    """The comment that says why an import is where it is: on its line, or on the comment line above
-    the block of import lines it belongs to."""
+    """The comment that says why an import is where it is: on its line (less a linter's directive),
+    or on the comment line above the block of import lines it belongs to."""
     text = lines[lineno - 1]
     if "#" in text:
-        return text.split("#", 1)[1].strip()
+        comment = _DIRECTIVE.sub("", text.split("#", 1)[1].strip()).strip()
+        if comment:
+            return comment
     above = lineno - 2
     while above >= 0 and lines[above].strip().startswith(("from ", "import ")):
         above -= 1
@@ -166,6 +174,9 @@ def check(rooms: dict[str, Room] | None = None, imports: list[Import] | None = N
             problems.append(f"dvfb/{room.name}/ is no layer's folder (the layers: {', '.join(LAYERS)}; "
                             "scripts/layers.py)")
     for item in imports:
+        if item.in_function and not item.comment:
+            problems.append(f"{item.module}:{item.line} imports {item.target} inside a function without a comment "
+                            "that says why")
         if not item.internal:
             continue
         source, target = room_of(item.module), room_of(item.target)
@@ -173,9 +184,6 @@ def check(rooms: dict[str, Room] | None = None, imports: list[Import] | None = N
             continue  # the face stands outside the layers; a room without a layer is reported above
         if layer_of(target) > layer_of(source):
             problems.append(f"{item.module}:{item.line} imports {item.target}: {source} stands below {target}")
-        if item.in_function and not item.comment:
-            problems.append(f"{item.module}:{item.line} imports {item.target} inside a function without a comment "
-                            "that says why")
     return problems
 
 

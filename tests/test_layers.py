@@ -33,6 +33,13 @@ def test_the_check_finds_an_import_that_runs_up_a_layer(tmp_path):
     assert any("dvfb.workflows.pretrain:30" in p and "without a comment" in p for p in problems)
 
 
+def test_a_linters_directive_is_no_reason_for_a_function_level_import():
+    lines = ["def f():", "    import wandb  # noqa: F401", "    # optional extra", "    import hub  # noqa: F401"]
+    assert layers._reason(lines, 2) == ""
+    assert layers._reason(lines, 4) == "optional extra"
+    assert layers._reason(["    import x  # noqa: F401  (chooses the backend now)"], 1) == "(chooses the backend now)"
+
+
 def _copy_of_the_package(tmp_path: Path) -> Path:
     package = tmp_path / "dvfb"
     shutil.copytree(layers.PACKAGE, package, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))

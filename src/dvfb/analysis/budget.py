@@ -246,6 +246,7 @@ def _bound(x: float | None) -> str:
 
 def plot(budget: Budget, path: Path, confidence: float) -> Path:
     """One panel per domain: each method's IQM against the pre-training frames, its interval as a band."""
+    # here, not at the top: matplotlib takes ~0.35 s to import and only the plots need it
     from matplotlib.figure import Figure
 
     domains = [d for d in budget.domains if d.curves]

@@ -119,6 +119,7 @@ def plot_curves(curves: dict[str, dict[str, list]], out_dir: Path, spread: str =
     ``kind="episodes"``, the per-episode curves of :func:`load_episode_curves` as ``episodes_*.png``."""
     xlabel = "fine-tuning frames" if kind == "finetune" else "episodes of interaction"
     title = "Fine-tuning" if kind == "finetune" else "Returns of the episodes of interaction"
+    # here, not at the top: matplotlib takes ~0.35 s to import and only the plots need it
     from matplotlib.figure import Figure
 
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -62,6 +62,8 @@ def _import_metaworld():
     if version != SUPPORTED_VERSION:
         raise ConfigError(f"metaworld {version} is installed, but dvfb's Meta-World tasks are checked against "
                           f"metaworld {SUPPORTED_VERSION} only: {INSTALL_HINT}")
+    # metaworld is the optional extra, checked just above (~0.5 s to import); mujoco, late as in
+    # dvfb.envs._common: its import reads MUJOCO_GL
     import mujoco
     import metaworld
     from metaworld import sawyer_xyz_env

@@ -62,6 +62,7 @@ def _import_submitit():
     previous = os.environ.get("SUBMITIT_LOG_LEVEL")
     os.environ["SUBMITIT_LOG_LEVEL"] = "NOCONFIG"
     try:
+        # inside the NOCONFIG set above (its import configures logging)
         import submitit
         import submitit.helpers
     finally:

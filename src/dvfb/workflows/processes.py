@@ -16,6 +16,7 @@ checkpoints and stops rather than train on without its locks.
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
 import os
 import signal
@@ -23,6 +24,8 @@ import threading
 import traceback
 from multiprocessing.connection import wait
 from typing import Any, Callable, Sequence
+
+import torch
 
 from dvfb.core import errors
 from dvfb.core.errors import DvfbError, RunInterrupted
@@ -56,8 +59,6 @@ def _die_with(parent: int) -> None:
     """Have the kernel send this process SIGTERM when ``parent`` dies (Linux's PR_SET_PDEATHSIG): a
     child whose command was killed outright checkpoints and stops instead of training on in
     directories whose locks died with the command."""
-    import ctypes
-
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
@@ -77,8 +78,6 @@ def _send(pipe, message) -> None:
 def _child(target: Callable, args: tuple, threads: int, pipe, parent: int) -> None:
     _die_with(parent)
     # Set before the target builds anything: torch's thread pool sizes itself on first use.
-    import torch
-
     torch.set_num_threads(threads)
 
     def ready(status: Any) -> None:

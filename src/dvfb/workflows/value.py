@@ -166,6 +166,7 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
 
 def _scatter(path: Path, value: np.ndarray, returns: np.ndarray, lam: np.ndarray, task: str, agent: str,
              rho: float) -> None:
+    # here, not at the top: matplotlib takes ~0.35 s to import and only the plots need it
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(5.6, 4.4), dpi=100, layout="constrained")
