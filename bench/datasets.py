@@ -32,11 +32,11 @@ import dvfb.envs as envs  # before dm_control: sets the headless MUJOCO_GL defau
 import numpy as np
 import torch
 
-from dvfb.config import merge
+from dvfb.core.config import merge
 from dvfb.data.datasets import read_dataset, relabel
-from dvfb.workflows.datasets import export_run
 from dvfb.runs import latest_checkpoint
 from dvfb.runs.presets import preset_config
+from dvfb.workflows.dataset_export import export_run
 from dvfb.workflows.pretrain import pretrain
 
 RESULTS = Path(__file__).resolve().parent / "results" / "datasets.json"

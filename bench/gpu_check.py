@@ -48,8 +48,8 @@ import learner as lb  # noqa: E402 - bench/learner.py: builds, timing, FLOPs, th
 import torch  # noqa: E402
 
 from dvfb.agents import agent_names  # noqa: E402
-from dvfb.config import replace  # noqa: E402
-from dvfb.execution import PerfConfig, set_tf32  # noqa: E402
+from dvfb.core.config import replace  # noqa: E402
+from dvfb.nets.execution import PerfConfig, set_tf32  # noqa: E402
 from dvfb.runs import read_metrics  # noqa: E402
 from dvfb.runs import machine  # noqa: E402
 from dvfb.runs.presets import preset_config  # noqa: E402

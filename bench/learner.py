@@ -79,14 +79,14 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from dvfb.agents import agent_names, get_spec, make_agent
-from dvfb.execution import PerfConfig, bf16_matmul_is_fast
-from dvfb.config import merge, replace, to_dict
+from dvfb.core.config import merge, replace, to_dict
 from dvfb.data import ReplayBuffer
+from dvfb.nets.execution import PerfConfig, bf16_matmul_is_fast
 from dvfb.runs import read_metrics
-from dvfb.training.observers import ReplayWriter
-from dvfb.training.rollout import Lane, Policy, rollout
 from dvfb.runs.presets import preset_config
 from dvfb.runs.run_config import PretrainConfig, agent_sections, run_config_from_dict
+from dvfb.training.observers import ReplayWriter
+from dvfb.training.rollout import Lane, Policy, rollout
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))

@@ -31,8 +31,8 @@ from pathlib import Path
 import torch
 
 from dvfb.agents import make_agent
-from dvfb.nets.members import stack_agents
 from dvfb.data import Batch
+from dvfb.nets.members import stack_agents
 
 MEMBER_COUNTS = (1, 2, 5, 10)
 
@@ -157,7 +157,7 @@ def run_members(args, device, obs_dim, action_dim, model_config, filled_replay) 
     warmup, repeats = (2, 5) if args.quick else (3, 10)
     counts = [int(n) for n in args.members.split(",")]
     rows = []
-    from dvfb.config import to_dict
+    from dvfb.core.config import to_dict
     for agent_name in args.agent_list:
         config = model_config("small", agent_name)
         separate = separate_schedules(agent_name, to_dict(config), obs_dim, action_dim, device, threads, warmup, repeats)

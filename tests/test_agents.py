@@ -19,7 +19,7 @@ import torch
 from dvfb import envs
 from dvfb.agents import agent_names, get_spec, make_agent
 from dvfb.cli import main
-from dvfb.errors import CheckpointError
+from dvfb.core.errors import CheckpointError
 from dvfb.protocols import finetuner_class, protocols_of
 from dvfb.runs import RunDir, load_snapshot
 from dvfb.runs.layout import PretrainRun
@@ -43,7 +43,7 @@ def build(agent_name: str, **sections):
     torch.manual_seed(0)
     config = tiny_run_config(agent_name)
     if sections:
-        from dvfb.config import merge
+        from dvfb.core.config import merge
 
         config = merge(config, sections)
     return make_agent(agent_name, OBS, ACT, config, "cpu"), config

@@ -303,10 +303,10 @@ def test_supervised_reference_trains_on_its_task_and_is_evaluated_on_it_only(tmp
     import torch
 
     from dvfb.agents import make_agent
-    from dvfb.config import merge
+    from dvfb.core.config import merge
     from dvfb.workflows.pretrain import pretrain
     from dvfb.workflows.zeroshot import zeroshot
-    from dvfb.errors import ConfigError
+    from dvfb.core.errors import ConfigError
     from tiny import filled_replay, tiny_run_config
 
     task = "point_mass_maze_reach_bottom_right"
@@ -361,7 +361,7 @@ def test_sweeps_give_the_supervised_reference_a_cell_per_task():
     assert spec.zeroshot_tasks(config, cell) == ["walker_run"]
     assert spec.cell_config(config, cell).supervised.task == "walker_run"
     assert spec.zeroshot_tasks(config, cells["fb_walker_s0"]) == ["walker_walk", "walker_run"]
-    from dvfb.errors import ConfigError
+    from dvfb.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="set by the sweep itself"):
         spec.build({}, {"agents": ["supervised"], "overrides": {"supervised.task": "walker_run"}}, {}, {})

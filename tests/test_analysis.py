@@ -28,7 +28,7 @@ from dvfb.analysis.report import make_report
 from dvfb.analysis.statistics import binned_spearman, quantile_bins, spearman
 from dvfb.protocols.dual_value import FinetuneConfig
 from dvfb.cli import main
-from dvfb.config import merge, save_json
+from dvfb.core.config import merge, save_json
 from dvfb.runs import write_json_atomic
 from dvfb.runs.presets import preset_config
 from dvfb.protocols import protocols_of

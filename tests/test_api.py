@@ -10,7 +10,7 @@ import torch
 import dvfb
 from dvfb import envs
 from dvfb.cli import main
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 from dvfb.workflows.pretrain import pretrain
 from tiny import tiny_run_config
 
@@ -66,9 +66,6 @@ def test_the_old_name_agent_still_gives_the_model_with_a_deprecation_warning(run
     with pytest.warns(DeprecationWarning, match=r"\.agent is deprecated.*use \.model"):
         old = loaded.agent
     assert old is loaded.model
-    with pytest.warns(DeprecationWarning, match="use dvfb.api.PretrainedModel"):
-        from dvfb.api import PretrainedAgent
-    assert PretrainedAgent is dvfb.api.PretrainedModel
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the new name warns of nothing
         assert loaded.model is old

@@ -19,8 +19,8 @@ import torch
 from dvfb.cli import main
 from dvfb.envs._common import set_mujoco_state
 from dvfb.data.datasets import DatasetInfo, load_episode, read_dataset, read_info, relabel, write_dataset
-from dvfb.workflows.datasets import export_run
-from dvfb.errors import CheckpointError, ConfigError
+from dvfb.workflows.dataset_export import export_run
+from dvfb.core.errors import CheckpointError, ConfigError
 from dvfb.data import Column, ReplayBuffer
 from dvfb.runs import load_checkpoint
 from tiny import tiny_flags

@@ -23,7 +23,7 @@ from dm_control import suite
 from dm_control.suite.wrappers import action_scale
 from gymnasium.error import ResetNeeded
 
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 
 # ------------------------------------------------------------------------------------------------
 # Spec constants, written out independently of the package (docs/tasks.md §0, §4, §5).

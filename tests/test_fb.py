@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from dvfb.agents.dvfb import DVFBAgent
-from dvfb.protocols.zero_shot import InferenceConfig
+from dvfb.protocols.zeroshot import InferenceConfig
 from dvfb.agents.fb import (
     BACKWARD_INPUTS,
     FBAgent,

@@ -18,7 +18,7 @@ from tests.tiny import ACT, OBS, random_batch, tiny_run_config
 
 def _agents(ensemble: int = 3):
     config = tiny_run_config("fbee")
-    from dvfb.config import merge
+    from dvfb.core.config import merge
 
     config = merge(config, {"fbee": {"ensemble": ensemble}})
     torch.manual_seed(0)
@@ -153,7 +153,7 @@ def test_a_run_changes_z_only_at_episode_starts_and_every_period(tmp_path):
     from dvfb.workflows.pretrain import pretrain
 
     config = tiny_run_config("fbee", frames=1200, seed_frames=400)
-    from dvfb.config import merge
+    from dvfb.core.config import merge
 
     config = merge(config, {"fb": {"skill_every": 100}})
     run = pretrain(config, tmp_path / "run", progress=False)

@@ -15,7 +15,7 @@ import torch
 
 from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig
 from dvfb.agents.fb import FBAgent, FBConfig
-from dvfb.protocols.zero_shot import InferenceConfig
+from dvfb.protocols.zeroshot import InferenceConfig
 from dvfb.protocols.dual_value import DualValueFinetuner, FinetuneConfig
 from dvfb.nets import RunningMeanStd, project_to_sphere
 from dvfb.data import Batch

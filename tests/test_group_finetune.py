@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from dvfb.agents import agent_names, get_spec
-from dvfb.errors import NonFiniteLossError
+from dvfb.core.errors import NonFiniteLossError
 from dvfb.nets.members import member_slice, stack_agents
 from dvfb.protocols import finetuner_class
 from dvfb.data import Batch
@@ -233,7 +233,7 @@ def test_bad_group_fine_tunings_are_one_line_and_create_nothing(tmp_path, fb_gro
 
 
 def test_a_member_in_use_is_refused_and_no_members_directory_is_left(fb_group):
-    from dvfb.errors import RunDirError
+    from dvfb.core.errors import RunDirError
     from dvfb.runs import RunLock
 
     busy = fb_group[1] / "finetune" / "busy"

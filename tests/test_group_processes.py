@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dvfb.errors import CheckpointError, ConfigError
+from dvfb.core.errors import CheckpointError, ConfigError
 from dvfb.runs import RunDir, load_snapshot
 from dvfb.workflows.pretrain import pretrain
 from dvfb.workflows.processes import shares, threads_per_process

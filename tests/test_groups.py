@@ -12,11 +12,11 @@ import pytest
 import torch
 
 from dvfb import envs
-from dvfb.errors import NonFiniteLossError
+from dvfb.core.errors import NonFiniteLossError
 from dvfb.nets.members import drop_members, member_training_state, stack_agents
 from dvfb.data import Batch
 from dvfb.runs import RunDir, load_checkpoint, load_snapshot, save_checkpoint
-from dvfb.training.metrics import MetricWindow
+from dvfb.training.metric_windows import MetricWindow
 from dvfb.workflows.pretrain import pretrain
 from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run

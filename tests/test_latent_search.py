@@ -16,7 +16,7 @@ import torch
 from dvfb.agents import make_agent
 from dvfb.agents.fb import FBAgent
 from dvfb.data import Batch, ReplayBuffer
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 from dvfb.nets import ACTION_EPS, project_to_sphere, skill_values
 from dvfb.protocols import finetuner_choices
 from dvfb.protocols.latent_search import (

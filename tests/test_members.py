@@ -11,7 +11,7 @@ import torch
 
 from dvfb import envs
 from dvfb.agents import agent_names, make_agent
-from dvfb.config import merge
+from dvfb.core.config import merge
 from dvfb.nets.members import MemberGenerators, member_training_state, stack_agents
 from dvfb.data import Batch
 from tiny import filled_replay, tiny_run_config

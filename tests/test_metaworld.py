@@ -26,7 +26,7 @@ from dm_control.utils import rewards as dm_rewards
 from gymnasium.error import ResetNeeded
 from metaworld.policies import SawyerFaucetCloseV3Policy, SawyerFaucetOpenV3Policy
 
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 
 TASKS = ["metaworld_faucet_open", "metaworld_faucet_close"]
 # docs/tasks.md §4.6, written out independently of the package.
@@ -309,7 +309,7 @@ def test_without_the_extra_the_tasks_are_listed_as_unavailable(tmp_path):
     run_dir = tmp_path / "run"
     result = _python(WITHOUT_EXTRA + (
         "from dvfb import envs\n"
-        "from dvfb.errors import ConfigError\n"
+        "from dvfb.core.errors import ConfigError\n"
         "print(envs.format_task_table())\n"
         "try:\n"
         "    envs.make('metaworld_faucet_close', seed=0)\n"

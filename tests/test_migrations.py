@@ -18,7 +18,7 @@ import torch
 
 import dvfb
 from dvfb.cli import main
-from dvfb.errors import CheckpointError
+from dvfb.core.errors import CheckpointError
 from dvfb.runs import load_checkpoint, save_checkpoint
 from dvfb.runs.layout import FINETUNE, PRETRAIN, FinetuneRun, PretrainRun, run_kind
 from dvfb.runs.migrations import check_resume_format, check_snapshot_format, migrate_training_state

@@ -19,8 +19,8 @@ import torch
 
 from dvfb.analysis.common import method_name
 from dvfb.cli import main
-from dvfb.errors import ConfigError
-from dvfb.workflows.datasets import export_run
+from dvfb.core.errors import ConfigError
+from dvfb.workflows.dataset_export import export_run
 from dvfb.runs import load_checkpoint, load_snapshot
 from tiny import tiny_flags
 

@@ -17,7 +17,7 @@ from tiny import D, tiny_config, tiny_flags
 
 from dvfb.agents.fb import FBAgent
 from dvfb.data import ReplayBuffer
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 from dvfb.nets import project_to_sphere
 from dvfb.protocols import finetuner_choices
 from dvfb.protocols.online_inference import (

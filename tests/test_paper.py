@@ -21,9 +21,9 @@ from dvfb.analysis.common import AnalysisError, Score, method_name
 from dvfb.analysis.report import make_report
 from dvfb.cli import main
 from dvfb.analysis.tables import build_table
-from dvfb.config import merge, save_json, to_dict
+from dvfb.core.config import merge, save_json, to_dict
 from dvfb.envs.registry import tasks_of_domain
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 from dvfb.runs import write_json_atomic
 from dvfb.runs.presets import preset_config
 from dvfb.protocols import protocols_of
@@ -327,7 +327,7 @@ def test_compare_table_is_the_per_task_comparison_of_any_table():
     scores = [Score("zeroshot", "fb", "walker", task, seed, value, Path(f"/runs/fb_s{seed}/zeroshot/{task}.json"))
               for seed, values in ((0, (10, 20, 30, 40)), (1, (30, 40, 50, 60))) for task, value in zip(WALKER, values)]
     table = build_table(scores, "Table 1 at 500k frames")
-    budget = paper.Budget(("code",), (500_000,))
+    budget = paper.RunBudget(("code",), (500_000,))
     rows = paper.compare_table(table, "zeroshot", budgets={"fb": budget}, presets=("code",))
     mine = {(r.cell.table, r.cell.task): r for r in rows if r.method == "fb"}
     assert set(mine) == {(1, t) for t in ("stand", "walk", "run", "flip", "average")}

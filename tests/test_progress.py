@@ -13,14 +13,14 @@ from pathlib import Path
 import pytest
 
 from dvfb.cli import main
-from dvfb.config import to_dict
-from dvfb.errors import RunInterrupted
+from dvfb.core.config import to_dict
+from dvfb.core.errors import RunInterrupted
 from dvfb.runs import RunLock, recent_rate
 from dvfb.runs.layout import PretrainRun
 from dvfb.runs.presets import preset_config
 from dvfb.runs.records import PretrainSummary
 from dvfb.training.checkpointing import ResumeCheckpoints
-from dvfb.training.metrics import MetricWindow
+from dvfb.training.metric_windows import MetricWindow
 from dvfb.training.progress import Progress, format_eta
 
 

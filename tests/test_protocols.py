@@ -14,13 +14,13 @@ import torch
 from dvfb import envs
 from dvfb.agents import AGENTS, get_spec, make_agent
 from dvfb.agents.base import Agent
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 from dvfb.nets.learner import Learner
 from dvfb.nets.members import member_training_state, stack_agents
 from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS, Finetuner, finetuner_choices, protocols_of, \
     resolve_finetuner
-from dvfb.protocols.zero_shot import SkillSelection, SkillSelectionConfig, best_candidate
-from dvfb.skills import SkillSpec
+from dvfb.protocols.zeroshot import SkillSelection, SkillSelectionConfig, best_candidate
+from dvfb.nets.skills import SkillSpec
 from dvfb.runs.run_config import run_config_class
 from tiny import tiny_run_config
 
@@ -263,7 +263,7 @@ def test_an_agent_with_a_run_generator_draws_nothing_from_the_global_stream(agen
 
 
 def test_a_resume_checkpoint_of_the_old_format_is_refused_in_one_line(tmp_path):
-    from dvfb.errors import CheckpointError
+    from dvfb.core.errors import CheckpointError
     from dvfb.runs import RunDir, latest_checkpoint
     from dvfb.workflows.pretrain import pretrain
 

@@ -9,7 +9,7 @@ import torch
 from scipy import stats
 
 import dvfb.data.buffer as replay_module
-from dvfb.errors import CheckpointError, ConfigError
+from dvfb.core.errors import CheckpointError, ConfigError
 from dvfb.data import ReplayBuffer
 
 OBS_DIM, ACTION_DIM, Z_DIM = 3, 2, 2

@@ -170,7 +170,7 @@ def test_loader_state_round_trip_continues_the_same_draws():
 
 
 def test_a_uniform_replay_state_does_not_resume_a_sharded_one():
-    from dvfb.errors import CheckpointError
+    from dvfb.core.errors import CheckpointError
 
     uniform = ReplayBuffer(1000, OBS, ACT, 0, max_episode_length=50)
     add_episode(uniform, 0, 50)
@@ -196,7 +196,7 @@ def test_too_few_finished_episodes_fall_back_instead_of_failing():
 
 
 def test_the_sampling_section_is_checked_like_every_option():
-    from dvfb.errors import ConfigError
+    from dvfb.core.errors import ConfigError
     from dvfb.runs.run_config import run_config_from_dict
 
     with pytest.raises(ConfigError, match="sampling"):

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch.nn import functional as F_nn
 
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 from dvfb.nets import RunningMeanStd
 from dvfb.data import Batch
 from dvfb.rewards.disagreement import DisagreementConfig, DisagreementReward

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from dvfb import __version__
-from dvfb.config import param
-from dvfb.errors import CheckpointError, ConfigError, RunDirError
+from dvfb.core.config import param
+from dvfb.core.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.runs import (
     MetricsLogger,
     RunDir,

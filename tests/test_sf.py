@@ -9,7 +9,7 @@ import torch
 
 from dvfb.agents import get_spec, make_agent
 from dvfb.agents.sf import PAPER_NAMES, SFAgent, SFConfig, regress_task_vector
-from dvfb.config import merge
+from dvfb.core.config import merge
 from dvfb.nets.features import FEATURE_LEARNERS
 from dvfb.protocols import protocols_of
 from dvfb.data import Batch

@@ -222,7 +222,7 @@ def _edit_config(change):
 
 
 def test_a_damaged_export_is_a_dvfb_error_naming_the_file(run, tmp_path):
-    from dvfb.errors import DvfbError
+    from dvfb.core.errors import DvfbError
 
     out = tmp_path / "export"
     assert main(["export", str(run), "--out", str(out), "--with-inference-data"]) == 0

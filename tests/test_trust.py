@@ -22,11 +22,11 @@ import torch
 
 from dvfb.agents.fb import FBAgent
 from dvfb.cli import main
-from dvfb.errors import NonFiniteLossError
+from dvfb.core.errors import NonFiniteLossError
 from dvfb.data import Batch
 from dvfb.runs import RunDir, latest_checkpoint, load_checkpoint, load_snapshot, save_checkpoint
 from dvfb.runs.layout import FinetuneRun
-from dvfb.training.metrics import MetricWindow
+from dvfb.training.metric_windows import MetricWindow
 from tiny import OBS, ACT, tiny_config, tiny_flags
 
 TINY = [*tiny_flags("fb"), "--log-every", "250", "--torch-threads", "1"]
@@ -452,7 +452,7 @@ def test_non_finite_rewards_or_goals_never_give_a_nan_skill(finished_run):
     import numpy as np
 
     import dvfb
-    from dvfb.errors import ConfigError
+    from dvfb.core.errors import ConfigError
 
     model = dvfb.load(finished_run)
     obs = np.zeros((8, 4), np.float32)
@@ -525,7 +525,7 @@ def test_api_inputs_of_the_wrong_shape_are_named(finished_run):
     import numpy as np
 
     import dvfb
-    from dvfb.errors import ConfigError
+    from dvfb.core.errors import ConfigError
 
     model = dvfb.load(finished_run)
     z = model.infer_z(np.zeros((8, 4), np.float32), np.zeros((8, 4), np.float32), np.ones(8, np.float32))

@@ -11,7 +11,7 @@ permutation, mixing mask and policy noise.
 
 Also here: the no-host-sync check of the update path, "each forward pass once per update" (a
 forward-call count per network), vectorised replay sampling, and the precision / compile / CUDA
-graph options of :mod:`dvfb.execution`.
+graph options of :mod:`dvfb.nets.execution`.
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ import dvfb
 from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig
 from dvfb.agents.fb import FBAgent, FBConfig
 from dvfb.rewards.contrastive import contrastive_entropy_reward
-from dvfb.execution import NetRunner, PerfConfig
-from dvfb.errors import ConfigError
+from dvfb.nets.execution import NetRunner, PerfConfig
+from dvfb.core.errors import ConfigError
 from dvfb.nets import TwinHead
 from dvfb.data import Batch, ReplayBuffer
 from tiny import random_batch
@@ -515,7 +515,7 @@ def test_sync_detector_detects_a_sync(no_host_sync):
     def syncing_fb_losses(*args):
         losses = original(*args)
         losses["fb_loss"].item()  # called from this test file: allowed
-        from dvfb.training.metrics import MetricWindow
+        from dvfb.training.metric_windows import MetricWindow
         window = MetricWindow()
         window.add(0, {"x": losses["fb_loss"]})
         window.flush()  # .cpu() from dvfb code: caught
@@ -680,7 +680,7 @@ def test_cuda_graphs_on_cpu_is_a_config_error():
 def test_tf32_is_off_unless_asked_and_refused_off_cuda():
     # The switches are process-wide and settable without a GPU; a CUDA runner sets them from the
     # config (docs/performance.md), here set_tf32 itself is checked.
-    from dvfb.execution import set_tf32
+    from dvfb.nets.execution import set_tf32
 
     before = (torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.conv.fp32_precision)
     try:
@@ -749,6 +749,6 @@ def test_perf_options_reach_the_cli_config_and_resume_rules():
 
 
 def merge_perf(config, **perf):
-    from dvfb.config import merge
+    from dvfb.core.config import merge
 
     return merge(config, {"perf": perf})

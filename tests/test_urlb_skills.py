@@ -22,7 +22,7 @@ from dvfb.rewards.aps import APSConfig, APSReward
 from dvfb.rewards.diayn import DIAYNConfig, DIAYNReward
 from dvfb.rewards.knn import KNNConfig
 from dvfb.rewards.smm import SMMConfig, SMMReward
-from dvfb.skills import SkillSpec
+from dvfb.nets.skills import SkillSpec
 from tiny import random_batch
 
 OBS, ACT, H, N = 5, 3, 32, 16

@@ -134,7 +134,7 @@ def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path: Path):
     """A NaN ridge (which the CLI refuses; set here behind its back) poisons the implicit reward of
     the first update after the first checkpoint: the error names the step, the ridge option and
     the checkpoint that is really there."""
-    from dvfb.errors import NonFiniteLossError
+    from dvfb.core.errors import NonFiniteLossError
     from dvfb.workflows.pretrain import pretrain
     from tiny import tiny_run_config
 

@@ -48,7 +48,7 @@ def tiny_run_config(agent: str, **top_level):
     """The small-preset run config of a registered method with tiny widths, on the maze by default
     (episodes of 1000 cheap steps), seed frames 500 and an update every 4 steps."""
     from dvfb.agents import get_spec
-    from dvfb.config import merge
+    from dvfb.core.config import merge
     from dvfb.runs.presets import preset_config
 
     top = dict(domain="point_mass_maze", frames=1000, seed_frames=500, update_every=4, checkpoint_every=1000,
@@ -87,7 +87,7 @@ def tiny_flags(agent: str, sections: tuple[str, ...] | None = None) -> list[str]
     """``dvfb pretrain`` flags of :data:`TINY_SECTIONS`' widths for ``agent``'s sections (or only
     ``sections`` of them): the command-line twin of :func:`tiny_run_config`."""
     from dvfb.agents import get_spec
-    from dvfb.config import flag_name
+    from dvfb.core.config import flag_name
 
     flags = []
     for section in get_spec(agent).sections:

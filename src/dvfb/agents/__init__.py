@@ -35,7 +35,7 @@ from dvfb.agents import supervised  # noqa: E402,F401
 
 from dvfb.agents.dvfb import DVFBAgent, ExplorationConfig  # noqa: E402
 from dvfb.agents.fb import FBAgent, FBConfig  # noqa: E402
-from dvfb.execution import PerfConfig  # noqa: E402
+from dvfb.nets.execution import PerfConfig  # noqa: E402
 
 
 def make_agent(name: str, obs_dim: int, action_dim: int, config, device: str | torch.device = "cpu") -> Agent:

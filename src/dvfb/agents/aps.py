@@ -11,8 +11,8 @@ from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGCore, DDPGModel, Intrin
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.nets import TwinCritic, call_network
 from dvfb.nets.members import with_head_axis
+from dvfb.nets.skills import SkillSpec
 from dvfb.rewards.aps import APSConfig, APSReward
-from dvfb.skills import SkillSpec
 
 
 class APSCore(DDPGCore):

@@ -4,7 +4,7 @@ interface"; docs/architecture.md, "A method: model and learner").
 A method is a :class:`Model` and a learner (:class:`Agent`):
 
 * the **model** holds what a pre-trained agent is used with -- its networks for acting and for
-  zero-shot inference -- and nothing of its training: its skill (:class:`~dvfb.skills.SkillSpec`:
+  zero-shot inference -- and nothing of its training: its skill (:class:`~dvfb.nets.skills.SkillSpec`:
   kind, width, prior, resampling rule) and :meth:`Model.sample_skill`; one batched
   :meth:`Model.act` (``obs (B, O)``, ``skills (B, d)`` -> ``(B, U)``: a rollout sample or the
   mean); the family's inference (:meth:`Model.infer_skill`, :meth:`Model.skill_from_goal`,
@@ -32,10 +32,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 from dvfb.nets import ACTION_EPS, HostActor, rollout_action
 from dvfb.nets.learner import Learner, ReplayNeeds  # noqa: F401  (ReplayNeeds: the methods import it from here)
-from dvfb.skills import NO_SKILL, SkillSpec
+from dvfb.nets.skills import NO_SKILL, SkillSpec
 
 
 @dataclass(frozen=True)
@@ -74,7 +74,7 @@ class Model(nn.Module):
     device: torch.device
     actor: nn.Module
     settings: TrainingSettings
-    net_runner: Any  # dvfb.execution.NetRunner: how its networks execute (precision, compilation)
+    net_runner: Any  # dvfb.nets.execution.NetRunner: how its networks execute (precision, compilation)
 
     # Skills ------------------------------------------------------------------------------------
     @property

@@ -13,8 +13,8 @@ from dvfb.agents.base import ReplayNeeds
 from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
 from dvfb.data import Batch
+from dvfb.nets.skills import SkillSpec
 from dvfb.rewards.becl import BeCLConfig, BeCLReward
-from dvfb.skills import SkillSpec
 
 __all__ = ["BeCLAgent", "BeCLConfig"]
 

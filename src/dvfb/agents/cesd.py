@@ -30,13 +30,13 @@ from torch import nn
 
 from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, DDPGCore, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
-from dvfb.config import param
+from dvfb.core.config import param
+from dvfb.data import Batch
 from dvfb.nets import TwinHead, call_network, layernorm_tanh_layer, orthogonal_init_, training_action
 from dvfb.nets.members import member_mean, with_head_axis
-from dvfb.data import Batch
+from dvfb.nets.skills import SkillSpec
 from dvfb.rewards.cesd import CeSDReward
 from dvfb.rewards.contrastive import CICConfig
-from dvfb.skills import SkillSpec
 
 __all__ = ["CeSDAgent", "CeSDConfig", "CeSDCore", "EnsembleCritic"]
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
+from dvfb.nets.skills import SkillSpec
 from dvfb.rewards.contrastive import CICReward, CICSkillConfig
-from dvfb.skills import SkillSpec
 
 
 class CICAgent(IntrinsicDDPGAgent):

@@ -29,10 +29,10 @@ from dataclasses import dataclass
 import torch
 
 from dvfb.agents.fb import FB_SMALL, FBAgent, FBComponent, FBConfig, FBStep, fb_finetune_label
-from dvfb.config import param
-from dvfb.errors import ConfigError
-from dvfb.execution import PerfConfig
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError
 from dvfb.nets import adam, skill_values, training_action
+from dvfb.nets.execution import PerfConfig
 from dvfb.nets.members import minimise, rand, row_products, with_head_axis
 
 PENALTIES = ("value", "measure")

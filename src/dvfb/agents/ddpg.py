@@ -20,13 +20,13 @@ import torch
 from torch import nn
 
 from dvfb.agents.base import Agent, Model, ReplayNeeds, TrainingSettings, no_skill_like
-from dvfb.config import param
+from dvfb.core.config import param
 from dvfb.data import Batch
-from dvfb.execution import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.nets import Actor, TwinCritic, adam, call_network, make_target, soft_update_, training_action, twin_td_loss
+from dvfb.nets.execution import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.nets.members import member_mean, minimise
+from dvfb.nets.skills import NO_SKILL, SkillSpec
 from dvfb.rewards.base import IntrinsicReward
-from dvfb.skills import NO_SKILL, SkillSpec
 
 # The CPU-sized preset of the URLB-style agents: the backbone's constants with narrower networks
 # and smaller batches, as the FB agents' small preset (docs/results/cpu_experiment.md).

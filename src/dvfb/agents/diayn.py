@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
+from dvfb.nets.skills import SkillSpec
 from dvfb.rewards.diayn import DIAYNConfig, DIAYNReward
-from dvfb.skills import SkillSpec
 
 class DIAYNAgent(IntrinsicDDPGAgent):
     name = "diayn"

@@ -18,7 +18,7 @@ import torch
 
 from dvfb.agents.fb import FB_SMALL, FBAgent, FBComponent, FBConfig, FBStep, fb_finetune_label
 from dvfb.agents.registry import AgentSpec, config_field, register
-from dvfb.config import param
+from dvfb.core.config import param
 from dvfb.data import Batch
 from dvfb.nets import TwinCritic, adam, make_target, twin_td_loss
 from dvfb.nets.members import member_mean, minimise, per_member

@@ -17,7 +17,7 @@ synchronises with the host (tests/test_update_equivalence.py checks this, and ch
 gradient of a full update against a plain reference implementation). The target EMAs are one fused
 call over all target parameters, and the actor loss is built with F (and Q_P) excluded from autograd,
 so its graph holds only the path from the action to the actor. How the networks execute
-(precision, torch.compile) is :mod:`dvfb.execution`'s business: every network call of the update
+(precision, torch.compile) is :mod:`dvfb.nets.execution`'s business: every network call of the update
 goes through the model's :attr:`~dvfb.agents.base.Model.net_runner`.
 """
 
@@ -30,9 +30,8 @@ import torch
 from torch import nn
 
 from dvfb.agents.base import Agent, Model, ReplayNeeds, TrainingSettings
-from dvfb.config import param
+from dvfb.core.config import param
 from dvfb.data import Batch
-from dvfb.execution import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.nets import (
     Actor,
     BackwardMap,
@@ -47,8 +46,9 @@ from dvfb.nets import (
     skill_values,
     training_action,
 )
+from dvfb.nets.execution import NetRunner, PerfConfig, requires_grad_disabled
 from dvfb.nets.members import member_mean, minimise, rand, randperm, row_products, take_rows, with_head_axis
-from dvfb.skills import SkillSpec
+from dvfb.nets.skills import SkillSpec
 
 log = logging.getLogger(__name__)
 

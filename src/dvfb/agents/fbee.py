@@ -25,7 +25,7 @@ from torch import nn
 
 from dvfb.agents.dvfb import ExplorationCritic
 from dvfb.agents.fb import FB_SMALL, FBAgent, FBConfig, FBModel, FBStep, fb_finetune_label
-from dvfb.config import param
+from dvfb.core.config import param
 from dvfb.data import Batch
 from dvfb.nets import ForwardMap, implicit_reward, offdiag_mean, orthonormality_loss, skill_values
 from dvfb.nets.members import member_mean, rand, row_products, stack_ensemble

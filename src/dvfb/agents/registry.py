@@ -13,7 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
+from dvfb.envs import pretrain_task
 
 
 @dataclass(frozen=True)
@@ -62,8 +63,6 @@ class AgentSpec:
         for part in self.task_field.split("."):
             value = config_field(value, part)
         if not value:  # empty: the domain's pre-training task
-            from dvfb.envs import pretrain_task  # lazy: the registry does not load dm_control
-
             return pretrain_task(config_field(run_config, "domain"))
         return value
 

@@ -24,9 +24,9 @@ from torch import nn
 
 from dvfb.agents.base import ReplayNeeds
 from dvfb.agents.fb import FBAgent, FBModel, FBStep
-from dvfb.config import param
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError
 from dvfb.data import Batch
-from dvfb.errors import ConfigError
 from dvfb.nets import ForwardMap, adam, project_to_sphere, sample_z_prior, skill_values, training_action
 from dvfb.nets.features import FEATURE_LEARNERS
 from dvfb.nets.members import rand, randperm, take_rows, with_head_axis

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from dvfb.agents.ddpg import DDPG_SMALL, DDPGConfig, IntrinsicDDPGAgent
 from dvfb.agents.registry import AgentSpec, register
-from dvfb.config import param
+from dvfb.core.config import param
 from dvfb.rewards.extrinsic import TaskReward
 
 

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from dvfb.analysis import aggregate as agg
 from dvfb.analysis.aggregate_report import BootstrapConfig
-from dvfb.analysis.common import RETURN, AnalysisError, PretrainRun, Score, method_sort_key, zeroshot_scores
+from dvfb.analysis.common import RETURN, AnalysisError, PretrainEntry, Score, method_sort_key, zeroshot_scores
 from dvfb.analysis.normalise import RANDOM, REFERENCE_METHODS, SUPERVISED, Normaliser
 from dvfb.analysis.tables import Table, build_table, sample_sizes, to_markdown
 
@@ -36,7 +36,7 @@ TITLE = "Zero-shot over the pre-training budget"
 FOCUS = "dvfb"  # the method whose probability of improvement over each other one is reported
 
 
-def snapshot_scores(runs: Iterable[PretrainRun], metric: str = RETURN) -> list[Score]:
+def snapshot_scores(runs: Iterable[PretrainEntry], metric: str = RETURN) -> list[Score]:
     """One score per run, task and snapshot: every zero-shot result of the runs, the earlier
     snapshots' ``<task>@<frames>.json`` as well as the final ``<task>.json``. A result that does not
     record its snapshot's frames cannot be placed on the budget axis and is left out."""
@@ -259,6 +259,7 @@ def _bound(x: float | None) -> str:
 
 def plot(budget: Budget, path: Path, confidence: float) -> Path:
     """One panel per domain: each method's IQM against the pre-training frames, its interval as a band."""
+    # here, not at the top: matplotlib takes ~0.35 s to import and only the plots need it
     from matplotlib.figure import Figure
 
     domains = [d for d in budget.domains if d.curves]

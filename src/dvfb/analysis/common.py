@@ -24,9 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from dvfb.agents import AGENTS, get_spec
-from dvfb.config import to_dict
-from dvfb.errors import DvfbError
-from dvfb.files import read_json as read_json_file
+from dvfb.core.config import to_dict
+from dvfb.core.errors import DvfbError
+from dvfb.core.files import read_json
 from dvfb.protocols import finetuner_class
 from dvfb.runs.layout import discover
 from dvfb.runs.presets import preset_config
@@ -161,7 +161,7 @@ def split_budget_label(label: str) -> tuple[str, int | None]:
 
 
 @dataclass
-class PretrainRun:
+class PretrainEntry:
     """A pre-training run of a report: its run directory (:class:`dvfb.runs.layout.PretrainRun`)."""
 
     run: Any
@@ -180,12 +180,12 @@ class PretrainRun:
 
 
 @dataclass
-class FinetuneRun:
+class FinetuneEntry:
     """A fine-tuning run of a report (:class:`dvfb.runs.layout.FinetuneRun`) and its pre-training run
     where it was found."""
 
     run: Any
-    parent: PretrainRun | None = None
+    parent: PretrainEntry | None = None
 
     @property
     def path(self) -> Path:
@@ -211,17 +211,17 @@ class FinetuneRun:
 
 @dataclass
 class Runs:
-    pretrain: list[PretrainRun] = field(default_factory=list)
-    finetune: list[FinetuneRun] = field(default_factory=list)
+    pretrain: list[PretrainEntry] = field(default_factory=list)
+    finetune: list[FinetuneEntry] = field(default_factory=list)
 
 
 def discover_runs(paths: Sequence[str | os.PathLike]) -> Runs:
     """Every pre-training and fine-tuning run in or under ``paths`` (:func:`dvfb.runs.layout.discover`).
     Raises :class:`AnalysisError` if a path does not exist or is not a directory."""
     pretrain, finetune = discover(paths, AnalysisError)
-    wrapped = {id(run): PretrainRun(run) for run in pretrain}
+    wrapped = {id(run): PretrainEntry(run) for run in pretrain}
     return Runs([wrapped[id(run)] for run in pretrain],
-                [FinetuneRun(run, None if parent is None else wrapped.get(id(parent), PretrainRun(parent)))
+                [FinetuneEntry(run, None if parent is None else wrapped.get(id(parent), PretrainEntry(parent)))
                  for run, parent in finetune])
 
 
@@ -250,8 +250,8 @@ def _episodes(returns: Any) -> int | None:
     return len(returns) if isinstance(returns, list) else None
 
 
-def read_json(path: Path) -> dict:
-    data = read_json_file(path, AnalysisError)
+def read_json_object(path: Path) -> dict:
+    data = read_json(path, AnalysisError)
     if not isinstance(data, dict):
         raise AnalysisError(f"{path} does not hold a JSON object")
     return data
@@ -274,7 +274,7 @@ def _has(data: dict, metric: str) -> bool:
     return metric == RETURN or metric in data
 
 
-def zeroshot_scores(runs: Iterable[PretrainRun], metric: str = RETURN, every_snapshot: bool = False) -> list[Score]:
+def zeroshot_scores(runs: Iterable[PretrainEntry], metric: str = RETURN, every_snapshot: bool = False) -> list[Score]:
     """The final-snapshot zero-shot results ``RUN/zeroshot/<task>.json`` (paper Table 1; with
     ``metric="success_rate"`` Table 6, from the results that carry a success rate).
 
@@ -296,7 +296,7 @@ def zeroshot_scores(runs: Iterable[PretrainRun], metric: str = RETURN, every_sna
     return scores
 
 
-def finetune_scores(runs: Iterable[FinetuneRun], metric: str = RETURN) -> list[Score]:
+def finetune_scores(runs: Iterable[FinetuneEntry], metric: str = RETURN) -> list[Score]:
     """The last point of each fine-tuning curve ``RUN/finetune/<name>/curve.json`` (paper Table 2),
     or its success rate (``metric="success_rate"``, points that carry one)."""
     scores = []
@@ -354,7 +354,7 @@ def random_scores(files: Iterable[str | os.PathLike], metric: str = RETURN) -> l
         path = Path(raw)
         if not path.is_file():
             raise AnalysisError(f"random-policy file {path} does not exist")
-        data = read_json(path)
+        data = read_json_object(path)
         tasks = data.get("tasks")
         if not isinstance(tasks, dict) or "domain" not in data:
             raise AnalysisError(f"{path} is not a random-policy file (written by `dvfb random-policy --output`)")

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from dvfb.analysis.aggregate import mean_interval
-from dvfb.analysis.common import AnalysisError, FinetuneRun, method_sort_key
+from dvfb.analysis.common import AnalysisError, FinetuneEntry, method_sort_key
 from dvfb.analysis.tables import STD_DDOF
 
 
@@ -34,7 +34,7 @@ class CurveBand:
     high: np.ndarray | None = None
 
 
-def load_curves(runs: Sequence[FinetuneRun], labels: Mapping[Path, str] | None = None
+def load_curves(runs: Sequence[FinetuneEntry], labels: Mapping[Path, str] | None = None
                 ) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
     """``{task: {method: [(frames, mean_return), ...one per run]}}`` from the runs' curve.json; a run
     whose curve file ``labels`` names is under that method (its table column, e.g. its budget's)."""
@@ -51,7 +51,7 @@ def load_curves(runs: Sequence[FinetuneRun], labels: Mapping[Path, str] | None =
     return curves
 
 
-def load_episode_curves(runs: Sequence[FinetuneRun], labels: Mapping[Path, str] | None = None
+def load_episode_curves(runs: Sequence[FinetuneEntry], labels: Mapping[Path, str] | None = None
                         ) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
     """``{task: {method: [(episode, return), ...one per run]}}``: the return of every training
     episode of the protocols that record them (test-time search, online task inference), against
@@ -66,7 +66,7 @@ def load_episode_curves(runs: Sequence[FinetuneRun], labels: Mapping[Path, str] 
     return curves
 
 
-def _label(run: FinetuneRun, labels: Mapping[Path, str] | None) -> str:
+def _label(run: FinetuneEntry, labels: Mapping[Path, str] | None) -> str:
     return (labels or {}).get(run.run.curve_path, run.method)
 
 
@@ -119,6 +119,7 @@ def plot_curves(curves: dict[str, dict[str, list]], out_dir: Path, spread: str =
     ``kind="episodes"``, the per-episode curves of :func:`load_episode_curves` as ``episodes_*.png``."""
     xlabel = "fine-tuning frames" if kind == "finetune" else "episodes of interaction"
     title = "Fine-tuning" if kind == "finetune" else "Returns of the episodes of interaction"
+    # here, not at the top: matplotlib takes ~0.35 s to import and only the plots need it
     from matplotlib.figure import Figure
 
     out_dir.mkdir(parents=True, exist_ok=True)

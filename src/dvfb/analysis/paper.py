@@ -53,8 +53,8 @@ from importlib import resources
 from dvfb.agents import AGENTS
 from dvfb.analysis.common import RETURN, SUCCESS, AnalysisError, Runs, Score, method_name, split_budget_label
 from dvfb.analysis.tables import AVERAGE, Cell, Table
-from dvfb.config import canonical_key, field_type, merge, parse_text
-from dvfb.errors import DvfbError
+from dvfb.core.config import canonical_key, field_type, merge, parse_text
+from dvfb.core.errors import DvfbError
 from dvfb.runs.presets import preset_config
 
 PAPER_PRETRAIN_FRAMES = 2_000_000
@@ -297,7 +297,7 @@ def load_paper_tables() -> PaperTables:
 
 
 @dataclass(frozen=True)
-class Budget:
+class RunBudget:
     """What a report's numbers were trained with: presets, pre-training frames (offline: updates)
     behind the zero-shot and fine-tuning numbers, and fine-tuning frames at the last curve point."""
 
@@ -307,7 +307,7 @@ class Budget:
     offline: bool = False  # trained on a dataset: pretrain_frames count updates
 
 
-def run_budget(runs: Runs, zeroshot: Iterable[Score], finetune: Iterable[Score]) -> Budget:
+def run_budget(runs: Runs, zeroshot: Iterable[Score], finetune: Iterable[Score]) -> RunBudget:
     """The budget of a report's runs, from their configs and scores."""
     presets = {str(r.config.preset) for r in runs.pretrain}
     presets |= {str(r.parent.config.preset) for r in runs.finetune if r.parent is not None}
@@ -327,10 +327,11 @@ def run_budget(runs: Runs, zeroshot: Iterable[Score], finetune: Iterable[Score])
             pretrain.add(int(parent.config.frames))
     if not pretrain:
         pretrain = {int(r.config.frames) for r in runs.pretrain}
-    return Budget(tuple(sorted(presets)), tuple(sorted(pretrain)), tuple(sorted(finetune_frames)))
+    return RunBudget(tuple(sorted(presets)), tuple(sorted(pretrain)), tuple(sorted(finetune_frames)))
 
 
-def method_budgets(runs: Runs, zeroshot: Iterable[Score], finetune: Iterable[Score]) -> dict[tuple[str, str], Budget]:
+def method_budgets(runs: Runs, zeroshot: Iterable[Score],
+                   finetune: Iterable[Score]) -> dict[tuple[str, str], RunBudget]:
     """The budget behind each column of the report, keyed by (``zeroshot`` or ``finetune``, method)."""
     pretrain_runs = {str(r.path): r for r in runs.pretrain}
     finetune_runs = {str(r.path): r for r in runs.finetune}
@@ -353,7 +354,7 @@ def method_budgets(runs: Runs, zeroshot: Iterable[Score], finetune: Iterable[Sco
         if run is not None and run.parent is not None:
             add(("finetune", score.method), run.parent.config, score.pretrain_frames or run.parent.config.frames,
                 score.frames)
-    return {key: Budget(tuple(sorted(p for p in part["presets"] if p)), tuple(sorted(part["pretrain"])),
+    return {key: RunBudget(tuple(sorted(p for p in part["presets"] if p)), tuple(sorted(part["pretrain"])),
                         tuple(sorted(part["finetune"])), part["offline"]) for key, part in parts.items()}
 
 
@@ -369,7 +370,7 @@ def _short(value: int) -> str:
     return str(value)
 
 
-def scale_marker(budget: Budget | None, kind: str) -> str:
+def scale_marker(budget: RunBudget | None, kind: str) -> str:
     """How the runs behind one column compare with the paper's budget, for the comparison's
     ``runs vs paper`` cell: ``paper scale``, or what is below it."""
     if budget is None:
@@ -390,7 +391,7 @@ def scale_marker(budget: Budget | None, kind: str) -> str:
     return "; ".join(parts) if parts else PAPER_SCALE
 
 
-def scale_notes(budget: Budget, has_finetune: bool) -> list[str]:
+def scale_notes(budget: RunBudget, has_finetune: bool) -> list[str]:
     """How the runs' budget compares with the paper's; the first note says whether the comparison
     is at the paper's scale at all."""
     below = []
@@ -467,7 +468,7 @@ def _domain_average(table: Table, domain: str, label: str) -> tuple[Cell | None,
 
 
 def compare_table(table: Table | None, kind: str, *, metric: str = RETURN,
-                  budgets: Mapping[str, Budget] | None = None, presets: Sequence[str] = ("paper",),
+                  budgets: Mapping[str, RunBudget] | None = None, presets: Sequence[str] = ("paper",),
                   tables: PaperTables | None = None) -> list[CellComparison]:
     """Every paper cell of ``kind`` (``zeroshot`` or ``finetune``) and ``metric`` beside the column of
     ``table`` that its method and flags make under ``presets`` (the presets of the table's runs):
@@ -524,7 +525,7 @@ def _all_domains_row(cell, method, table, kind, presets, budgets, cells) -> Cell
     if not labels:
         return CellComparison(cell, NOT_RUN)
     merged = [budgets[label] for label in labels if label in budgets]
-    budget = Budget(tuple(sorted({p for b in merged for p in b.presets})),
+    budget = RunBudget(tuple(sorted({p for b in merged for p in b.presets})),
                     tuple(sorted({f for b in merged for f in b.pretrain_frames})),
                     tuple(sorted({f for b in merged for f in b.finetune_frames})),
                     any(b.offline for b in merged)) if merged else None
@@ -539,7 +540,7 @@ def _all_domains_row(cell, method, table, kind, presets, budgets, cells) -> Cell
 @dataclass
 class PaperComparison:
     rows: list[CellComparison]
-    budget: Budget
+    budget: RunBudget
     notes: list[str] = field(default_factory=list)
     tables: PaperTables | None = None
 
@@ -553,9 +554,9 @@ class PaperComparison:
         return [r for r in self.rows if r.method]
 
 
-def compare(zeroshot: Table | None, finetune: Table | None, budget: Budget, *,
+def compare(zeroshot: Table | None, finetune: Table | None, budget: RunBudget, *,
             success_zeroshot: Table | None = None, success_finetune: Table | None = None,
-            budgets: Mapping[tuple[str, str], Budget] | None = None,
+            budgets: Mapping[tuple[str, str], RunBudget] | None = None,
             tables: PaperTables | None = None) -> PaperComparison:
     """Every paper cell beside the report's tables: returns against Tables 1 and 2 of the report,
     Meta-World's success rates against its Table 6 (:func:`compare_table` for each), with the

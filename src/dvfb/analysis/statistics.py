@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.stats import spearmanr
 
 from dvfb.analysis.common import AnalysisError
 
@@ -15,8 +16,6 @@ NAN = float("nan")
 
 def spearman(x: Sequence[float], y: Sequence[float]) -> float:
     """Spearman's rho of two sequences; NaN with fewer than 3 points or a constant sequence."""
-    from scipy.stats import spearmanr
-
     x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
     if x.shape != y.shape or x.ndim != 1:
         raise ValueError("spearman needs two 1-D sequences of the same length")

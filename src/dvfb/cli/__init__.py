@@ -15,10 +15,12 @@ import logging
 import sys
 
 from dvfb import __version__
+from dvfb.agents import agent_names
 from dvfb.cli import (analyze, dataset, demo, finetune, info, pretrain, random_policy, report, share, status,
                       supervised, sweep, video, zeroshot)
 from dvfb.cli.common import Formatter, Parser, unknown_option_message
-from dvfb.errors import DvfbError, RunInterrupted
+from dvfb.core.errors import DvfbError, RunInterrupted
+from dvfb.training.progress import progress_interval
 
 # The order of `dvfb --help`.
 COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo, sweep, status, report, analyze, video,
@@ -47,9 +49,6 @@ def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:
 
 def _requested_agent(argv: list[str]) -> str:
     """The value of ``pretrain --agent`` (which decides the config flags), before the full parse."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.agents import agent_names
-
     if "pretrain" not in argv:
         return "dvfb"
     rest = argv[argv.index("pretrain") + 1:]
@@ -76,9 +75,6 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
-        # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-        from dvfb.training.progress import progress_interval
-
         # A bad DVFB_PROGRESS_SECONDS is bad input: refused before the command creates anything.
         progress_interval()
         return args.func(args)

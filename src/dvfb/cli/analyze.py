@@ -6,12 +6,12 @@ import argparse
 
 from dvfb.cli.common import (Formatter, add_protocol_arguments, add_snapshot_and_seed, integer, progress_flag,
                              protocol_overrides, torch_threads_flag)
+from dvfb.workflows.exploration import analyze_exploration
+from dvfb.workflows.value import analyze_value
+
 
 def cmd_analyze_value(args: argparse.Namespace) -> int:
     """Skill value vs return (paper §4, Fig. 3b)."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.workflows.value import analyze_value
-
     summary = analyze_value(args.run, args.task, skills=args.skills, episodes_per_skill=args.episodes_per_skill,
                             bins=args.bins, max_steps=args.max_steps, snapshot=args.snapshot, seed=args.seed,
                             inference=protocol_overrides(args, "inference"),
@@ -31,9 +31,6 @@ def cmd_analyze_value(args: argparse.Namespace) -> int:
 
 def cmd_analyze_exploration(args: argparse.Namespace) -> int:
     """Skill trajectories and state coverage (paper Fig. 2)."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.workflows.exploration import analyze_exploration
-
     summary = analyze_exploration(args.run, skills=args.skills, repeats=args.repeats, steps=args.steps,
                                   actions=args.actions, cell_size=args.cell_size, snapshot=args.snapshot,
                                   seed=args.seed, overwrite=args.overwrite, progress=args.progress,

@@ -14,8 +14,15 @@ from typing import Any
 
 import numpy as np
 
-from dvfb.config import INT_RANGE, SEED_MAX, add_arguments, flag_name, merge, overrides_from_args
-from dvfb.errors import ConfigError
+from dvfb.agents import agent_names, get_spec
+from dvfb.core.config import (INT_RANGE, SEED_MAX, add_arguments, canonical_key, field_type, flag_name, merge,
+                              overrides_from_args)
+from dvfb.core.errors import ConfigError
+from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS, FinetuneSchedule
+from dvfb.runs.export import is_export
+from dvfb.runs.presets import preset_config
+from dvfb.runs.run_config import GENERIC_PRESETS, run_config_class
+from dvfb.workflows.resources import run_or_export
 
 DEFAULT_PRESET = "small"
 
@@ -38,11 +45,6 @@ def unknown_option_message(args: argparse.Namespace, extra: list[str]) -> str:
     """What to say of command-line words no option of the command took: for ``dvfb pretrain``, a
     config option of another method names the methods that have it (the flags depend on --agent)."""
     if getattr(args, "command", None) == "pretrain":
-        # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-        from dvfb.agents import agent_names
-        from dvfb.config import canonical_key, field_type
-        from dvfb.runs.run_config import run_config_class
-
         for word in extra:
             if not word.startswith("--"):
                 continue
@@ -71,10 +73,6 @@ def parse_goal(text: str) -> np.ndarray:
 
 
 def pretrain_config(args: argparse.Namespace):
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.runs.presets import preset_config
-    from dvfb.runs.run_config import run_config_class
-
     base = preset_config(args.preset, args.agent)
     return merge(base, overrides_from_args(args, run_config_class(args.agent)))
 
@@ -82,9 +80,6 @@ def pretrain_config(args: argparse.Namespace):
 def protocol_classes(kind: str, online: bool = False) -> list[type]:
     """The config classes of every registered zero-shot protocol (``inference``) or fine-tuner
     (``online``: only the fine-tuners that infer the task online, ``dvfb zeroshot --protocol``)."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.protocols import FINETUNERS, ZERO_SHOT_PROTOCOLS
-
     registry = ZERO_SHOT_PROTOCOLS if kind == "inference" else FINETUNERS
     classes: list[type] = []
     for protocol in registry.values():
@@ -104,11 +99,6 @@ class PresetDefault:
         self.kind, self.name, self.fallback = kind, name, fallback
 
     def __str__(self) -> str:
-        # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-        from dvfb.agents import agent_names
-        from dvfb.runs.presets import preset_config
-        from dvfb.runs.run_config import GENERIC_PRESETS
-
         groups: dict[str, list[str]] = {}
         for preset in GENERIC_PRESETS:
             values = set()
@@ -149,10 +139,6 @@ def add_finetune_arguments(p: argparse.ArgumentParser) -> None:
     name after the schedule every fine-tuner shares; an option two fine-tuners share is listed in
     the first one's group and named in the other's description. The run's fine-tuner takes only its
     own options (:func:`dvfb.protocols.check_finetune_options` refuses the others)."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.agents import agent_names, get_spec
-    from dvfb.protocols import FINETUNERS, FinetuneSchedule
-
     seen: set[str] = set()
     _option_group(p, "finetune options of every protocol (FinetuneSchedule)", None, FinetuneSchedule, seen,
                   "finetune")
@@ -269,10 +255,6 @@ def evaluated(paths: str | list[str], eval_dir: str | None, command: list[str] |
     """What a command evaluates, as ``(run directories, inference data, exported)``: ``paths`` as
     they are, or one exported model's evaluation directory with its inference samples
     (:func:`~dvfb.workflows.resources.run_or_export`)."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.runs.export import is_export
-    from dvfb.workflows.resources import run_or_export
-
     paths = [paths] if isinstance(paths, str) else list(paths)
     if len(paths) == 1:
         with run_or_export(paths[0], eval_dir, command) as (run, data):

@@ -3,19 +3,16 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from dvfb.cli.common import Formatter, progress_flag, torch_threads_flag
+from dvfb.data.datasets import EPISODES_DIR, default_relabel_dir, describe, relabel
+from dvfb.training.progress import progress_bars
+from dvfb.workflows.dataset_export import default_export_dir, export_run
+from dvfb.workflows.resources import use_threads
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.data.datasets import EPISODES_DIR, describe
-    from dvfb.training.progress import progress_bars
-    from dvfb.workflows.datasets import default_export_dir, export_run
-    from dvfb.workflows.resources import use_threads
-
     use_threads(args.torch_threads)
     info = export_run(args.run, args.out, progress=progress_bars(args.progress))
     out = Path(args.out) if args.out else default_export_dir(args.run)
@@ -24,13 +21,6 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_relabel(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.data.datasets import default_relabel_dir, describe, relabel
-    from dvfb.training.progress import progress_bars
-    from dvfb.workflows.resources import use_threads
-
     use_threads(args.torch_threads)
     info = relabel(args.dataset, args.task, args.out, progress=progress_bars(args.progress))
     print(describe(info, args.out or default_relabel_dir(Path(args.dataset), args.task)))

@@ -4,28 +4,26 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
+from dvfb import envs
 from dvfb.cli.common import integer, progress_flag
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError, DvfbError
+from dvfb.runs.export import is_export, unpack_export
+from dvfb.runs.presets import preset_config
+from dvfb.workflows.pretrain import pretrain
+from dvfb.workflows.video import record_video
+from dvfb.workflows.zeroshot import random_policy_return, zeroshot
+
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """The bundled pre-trained DVFB walker zero-shot on its 4 tasks against a random policy, by its
     full protocol, as mean ± standard error with a verdict per task; a GIF of one task; then a short
     live pre-training that shows the pipeline (docs: README, "Two commands")."""
-    import shutil
-
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb import envs
-    from dvfb.workflows.video import record_video
-    from dvfb.errors import DvfbError
-    from dvfb.runs.export import unpack_export
-    from dvfb.runs.presets import preset_config
-    from dvfb.workflows.pretrain import pretrain
-    from dvfb.workflows.zeroshot import random_policy_return, zeroshot
-
     out = Path(args.out_dir)
     bundled = bundled_demo_run()
     agent_dir = out / "pretrained_dvfb_walker"
@@ -107,11 +105,6 @@ def zeroshot_protocol_steps(run_dir: Path) -> int:
 def bundled_demo_run() -> Path:
     """The pre-trained DVFB walker agent shipped in the package: an exported model (safetensors,
     config.json, model card; docs/sharing.md) and its provenance.json."""
-    from importlib import resources
-
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.runs.export import is_export
-
     path = Path(str(resources.files("dvfb") / "data" / "demo_walker_dvfb"))
     if not is_export(path):
         raise ConfigError(f"the bundled demo agent is missing from the installation ({path})")

@@ -6,14 +6,13 @@ import argparse
 
 from dvfb.cli.common import (Formatter, add_finetune_arguments, add_protocol_arguments, add_snapshot_and_seed,
                              progress_flag, protocol_overrides, torch_threads_flag)
-from dvfb.config import add_arguments, overrides_from_args
+from dvfb.core.config import add_arguments, overrides_from_args
+from dvfb.runs.layout import FinetuneRun
+from dvfb.runs.wandb_sink import LogConfig
+from dvfb.workflows.finetune import finetune
+
 
 def cmd_finetune(args: argparse.Namespace) -> int:
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.runs.layout import FinetuneRun
-    from dvfb.runs.wandb_sink import LogConfig
-    from dvfb.workflows.finetune import finetune
-
     options = dict(snapshot=args.snapshot, seed=args.seed, name=args.name,
                    inference=protocol_overrides(args, "inference"), finetune=protocol_overrides(args, "finetune"),
                    resume=args.resume, overwrite=args.overwrite, progress=args.progress, protocol=args.protocol,
@@ -59,8 +58,6 @@ def register(sub, agent: str) -> None:
     torch_threads_flag(p)
     add_protocol_arguments(p, "inference")
     add_finetune_arguments(p)
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.runs.wandb_sink import LogConfig
 
     group = p.add_argument_group("logging options (default: the pre-training run's)")
     add_arguments(group, LogConfig, prefix="log.")

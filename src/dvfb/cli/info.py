@@ -4,19 +4,17 @@ from __future__ import annotations
 
 import argparse
 
-def cmd_tasks(args: argparse.Namespace) -> int:
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb import envs
+from dvfb import envs
+from dvfb.agents import AGENTS
 
+
+def cmd_tasks(args: argparse.Namespace) -> int:
     print(envs.format_task_table())
     return 0
 
 
 def cmd_agents(args: argparse.Namespace) -> int:
     """The registered methods, from the registry."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.agents import AGENTS
-
     rows = [(s.name, s.family, s.zero_shot, s.finetuner, ", ".join(s.sections)) for s in AGENTS.values()]
     header = ("agent", "family", "zero-shot", "fine-tuner", "config sections")
     widths = [max(len(r[i]) for r in rows + [header]) for i in range(len(header))]

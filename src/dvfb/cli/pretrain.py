@@ -5,14 +5,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dvfb.agents import agent_names
 from dvfb.cli.common import (DEFAULT_PRESET, Formatter, default_run_dir, member_run_dirs, pretrain_config,
                              progress_flag, seed_list)
-from dvfb.config import add_arguments
+from dvfb.core.config import add_arguments
+from dvfb.runs.presets import PRESETS, preset_config
+from dvfb.runs.run_config import run_config_class
+from dvfb.workflows.pretrain import pretrain
+
 
 def cmd_pretrain(args: argparse.Namespace) -> int:
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.workflows.pretrain import pretrain
-
     config = pretrain_config(args)
     if args.seeds is not None:
         runs = pretrain(config, member_run_dirs(config, args.run_dir, args.seeds), seeds=args.seeds,
@@ -28,11 +30,6 @@ def cmd_pretrain(args: argparse.Namespace) -> int:
 
 
 def register(sub, agent: str) -> None:
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.agents import agent_names
-    from dvfb.runs.presets import PRESETS, preset_config
-    from dvfb.runs.run_config import run_config_class
-
     p = sub.add_parser(
         "pretrain", help="reward-free pre-training", formatter_class=Formatter,
         description="Reward-free online pre-training (docs/methods.md). Defaults shown are those of the "

@@ -5,18 +5,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dvfb import envs
 from dvfb.cli.common import integer, seed_value, torch_threads_flag
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
+from dvfb.runs import check_writable, write_json_atomic
+from dvfb.workflows.resources import use_threads
+from dvfb.workflows.zeroshot import random_policy_evaluation
 
 
 def cmd_random_policy(args: argparse.Namespace) -> int:
     """Returns of a uniform-random policy on every task of a domain (the table's floor)."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb import envs
-    from dvfb.runs import check_writable, write_json_atomic
-    from dvfb.workflows.resources import use_threads
-    from dvfb.workflows.zeroshot import random_policy_evaluation
-
     use_threads(args.torch_threads)
     envs.check_domain(args.domain)
     output = Path(args.output) if args.output else None

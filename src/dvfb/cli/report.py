@@ -4,16 +4,18 @@ from __future__ import annotations
 
 import argparse
 
+from dvfb.analysis import aggregate_report, budget
+from dvfb.analysis.aggregate import BOOTSTRAP_SAMPLES, CONFIDENCE
+from dvfb.analysis.aggregate_report import BootstrapConfig
+from dvfb.analysis.normalise import CHOICES
+from dvfb.analysis.paper import to_markdown as paper_markdown
+from dvfb.analysis.report import make_report
+from dvfb.analysis.tables import to_markdown
 from dvfb.cli.common import Formatter, integer, seed_value
+
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Tables 1, 2 and 6 of the paper and fine-tuning curves from run directories."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.analysis import aggregate_report
-    from dvfb.analysis.aggregate_report import BootstrapConfig
-    from dvfb.analysis.report import make_report
-    from dvfb.analysis.tables import to_markdown
-
     bootstrap = BootstrapConfig(args.bootstrap_samples, args.confidence, args.bootstrap_seed)
     report = make_report(args.runs, args.out, spread="se" if args.stderr else "std",
                          random_files=args.random or (), overwrite=args.overwrite, normaliser=args.normaliser,
@@ -28,12 +30,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     for result in report.aggregates.values():
         print(aggregate_report.markdown(result, bootstrap, None, heading_level=2))
     if report.budget is not None:
-        from dvfb.analysis import budget  # lazy: as above
-
         print(budget.markdown(report.budget, bootstrap, None, heading_level=2))
     if report.paper is not None:
-        from dvfb.analysis.paper import to_markdown as paper_markdown  # lazy: as above
-
         print(paper_markdown(report.paper) + "\n")
     for note in report.notes:
         print(f"note: {note}")
@@ -42,10 +40,6 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def register(sub, agent: str) -> None:
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.analysis.aggregate import BOOTSTRAP_SAMPLES, CONFIDENCE
-    from dvfb.analysis.normalise import CHOICES
-
     p = sub.add_parser(
         "report", help="Tables 1, 2 and 6, normalised scores, aggregates with bootstrap intervals, profiles and curves",
         formatter_class=Formatter,

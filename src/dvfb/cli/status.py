@@ -5,12 +5,11 @@ from __future__ import annotations
 import argparse
 
 from dvfb.cli.common import Formatter
+from dvfb.runs.status import run_status
+from dvfb.training.progress import format_eta
 
 
 def _duration(seconds: float) -> str:
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.training.progress import format_eta
-
     return format_eta(seconds)
 
 
@@ -62,9 +61,6 @@ def _print(status: dict) -> None:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.runs.status import run_status
-
     statuses = [run_status(path) for path in args.run]  # every path checked before anything is printed
     for status in statuses:
         _print(status)

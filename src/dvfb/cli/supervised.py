@@ -5,19 +5,20 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dvfb import envs
 from dvfb.cli.common import DEFAULT_PRESET, Formatter, progress_flag
-from dvfb.config import add_arguments, merge, overrides_from_args
+from dvfb.core.config import add_arguments, merge, overrides_from_args
+from dvfb.runs.layout import PretrainRun
+from dvfb.runs.presets import PRESETS, preset_config
+from dvfb.runs.run_config import run_config_class
+from dvfb.workflows.pretrain import pretrain
+from dvfb.workflows.zeroshot import zeroshot
 
 AGENT = "supervised"
 
 
 def supervised_config(args: argparse.Namespace):
     """The run config of ``dvfb supervised``: the preset, the flags, and the task's domain."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb import envs
-    from dvfb.runs.presets import preset_config
-    from dvfb.runs.run_config import run_config_class
-
     if args.task not in envs.TASKS:
         envs.make(args.task)  # one line listing the valid names
     overrides = overrides_from_args(args, run_config_class(AGENT))
@@ -27,11 +28,6 @@ def supervised_config(args: argparse.Namespace):
 
 
 def cmd_supervised(args: argparse.Namespace) -> int:
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.workflows.pretrain import pretrain
-    from dvfb.runs.layout import PretrainRun
-    from dvfb.workflows.zeroshot import zeroshot
-
     config = supervised_config(args)
     run_dir = Path(args.run_dir) if args.run_dir else Path("runs") / f"{AGENT}_{args.task}_{config.preset}_s{config.seed}"
     run = pretrain(config, run_dir, resume=args.resume, overwrite=args.overwrite, progress=args.progress,
@@ -47,10 +43,6 @@ def cmd_supervised(args: argparse.Namespace) -> int:
 
 
 def register(sub, agent: str) -> None:
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.runs.presets import PRESETS, preset_config
-    from dvfb.runs.run_config import run_config_class
-
     p = sub.add_parser(
         "supervised", help="the supervised reference: DDPG from scratch on a task's reward, then evaluated",
         formatter_class=Formatter,

@@ -16,9 +16,14 @@ import sys
 import typing
 from pathlib import Path
 
+from dvfb.agents import agent_names
 from dvfb.cli.common import Formatter
-from dvfb.config import add_arguments, flag_name, overrides_from_args, to_dict
-from dvfb.errors import ConfigError
+from dvfb.core.config import add_arguments, flag_name, overrides_from_args, to_dict
+from dvfb.core.errors import ConfigError
+from dvfb.runs.presets import preset_config
+from dvfb.sweep import runner, spec
+from dvfb.sweep.spec import SweepConfig
+from dvfb.sweep.units import use_in_process
 
 # argparse destination prefix of the pre-training config flags.
 _OVERRIDE = "override:"
@@ -27,7 +32,6 @@ _OVERRIDE = "override:"
 def _config_flags(group, cls: type, defaults, prefix: str = "", seen: set[str] | None = None) -> None:
     """One text option per pre-training config field of ``cls`` not seen yet; the sweep parses
     the text (a comma-separated list is a grid axis) with the field's type."""
-    from dvfb.sweep import spec  # lazy: as add_run_arguments
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
         key = f"{prefix}{f.name}"
@@ -49,11 +53,6 @@ def _config_flags(group, cls: type, defaults, prefix: str = "", seen: set[str] |
 
 
 def add_run_arguments(parser: argparse.ArgumentParser) -> None:
-    # lazy: the sweep's machinery loads when the command is built or runs (a fast `dvfb --help`)
-    from dvfb.agents import agent_names
-    from dvfb.runs.presets import preset_config
-    from dvfb.sweep.spec import SweepConfig
-
     parser.add_argument("file", nargs="?", default=None,
                         help="sweep file (.toml or .json) with the fields below; command-line values override it")
     parser.add_argument("--dir", default=None, help="sweep directory (default: sweeps/<file name without "
@@ -71,10 +70,6 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace):
     """The sweep directory and the sweep: defaults <- the stored sweep (a re-run without a file)
     <- the file <- the command line."""
-    # lazy: the sweep's machinery loads when the command runs (a fast `dvfb --help`)
-    from dvfb.sweep import spec
-    from dvfb.sweep.spec import SweepConfig
-
     file = Path(args.file) if args.file else None
     if args.dir:
         path = Path(args.dir)
@@ -91,8 +86,6 @@ def config_from_args(args: argparse.Namespace):
 
 
 def run_from_args(args: argparse.Namespace) -> int:
-    from dvfb.sweep import runner  # lazy: the sweep's machinery loads when the command runs
-
     path, config = config_from_args(args)
     only = getattr(args, "only", None) or None
     if getattr(args, "dry_run", False):
@@ -108,8 +101,6 @@ def run_from_args(args: argparse.Namespace) -> int:
 
 
 def status_from_args(args: argparse.Namespace) -> int:
-    from dvfb.sweep import runner  # lazy: the sweep's machinery loads when the command runs
-
     rows, warning = runner.status(Path(args.dir))
     print(runner.format_status(rows))
     if warning:
@@ -119,9 +110,6 @@ def status_from_args(args: argparse.Namespace) -> int:
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     """A grid of runs through pre-train -> zero-shot -> fine-tune -> report (dvfb.sweep)."""
-    # lazy: the sweep's machinery loads when the command runs (a fast `dvfb --help`)
-    from dvfb.sweep.units import use_in_process
-
     use_in_process(args.entry_point)  # the debug executor's phases are dvfb commands run in this process
 
     return run_from_args(args)

@@ -6,13 +6,11 @@ import argparse
 
 from dvfb.cli.common import (Formatter, add_protocol_arguments, add_snapshot_and_seed, eval_dir_flag, evaluated,
                              integer, progress_flag, protocol_overrides, torch_threads_flag)
+from dvfb.workflows.video import record_video
 
 
 def cmd_video(args: argparse.Namespace) -> int:
     """A video of zero-shot evaluation episodes, of a run or an exported model (docs/sharing.md, "Evaluate")."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.workflows.video import record_video
-
     with evaluated(args.run, args.eval_dir, args.command_line) as ([run], _data, _exported):
         result = record_video(run, args.task, episodes=args.episodes, out=args.out, max_steps=args.max_steps,
                               frame_skip=args.frame_skip, height=args.height, width=args.width, camera=args.camera,

@@ -7,6 +7,12 @@ import argparse
 
 from dvfb.cli.common import (DeprecatedAlias, Formatter, add_protocol_arguments, add_snapshot_and_seed, eval_dir_flag,
                              evaluated, parse_goal, progress_flag, protocol_overrides, torch_threads_flag)
+from dvfb.core.errors import ConfigError
+from dvfb.protocols import FINETUNERS
+from dvfb.runs.layout import FinetuneRun
+from dvfb.workflows.finetune import finetune
+from dvfb.workflows.resources import evaluation_tasks, open_run
+from dvfb.workflows.zeroshot import zeroshot
 
 # zeroshot --protocol online_inference: its options, named after what they configure; --finetune.*
 # (their first name: the protocol runs on the fine-tuning loop) still works, with a note.
@@ -20,8 +26,6 @@ def _online_options(args: argparse.Namespace) -> dict:
 def cmd_zeroshot(args: argparse.Namespace) -> int:
     if args.protocol is not None:
         return _online(args)
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.errors import ConfigError
 
     if args.resume:
         raise ConfigError("--resume continues a zero-shot protocol that runs in the task: pass --protocol with it")
@@ -32,10 +36,6 @@ def cmd_zeroshot(args: argparse.Namespace) -> int:
 
 
 def _zeroshot(args: argparse.Namespace, runs: list[str], inference_data, exported: bool) -> int:
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.workflows.resources import evaluation_tasks, open_run
-    from dvfb.workflows.zeroshot import zeroshot
-
     group = len(runs) > 1
     first_run = open_run(runs[0], args.torch_threads)
     config = first_run.config
@@ -71,10 +71,6 @@ def _online(args: argparse.Namespace) -> int:
     """A zero-shot protocol that infers the task from interaction alone (``online_inference``): it
     runs in the task on the fine-tuning loop (its budget, resume and evaluations), under
     ``RUN/finetune/<task>.<protocol>/``."""
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.errors import ConfigError
-    from dvfb.protocols import FINETUNERS
-
     cls = FINETUNERS.get(args.protocol)
     if cls is None or cls.infers_skill:
         choices = ", ".join(name for name, c in FINETUNERS.items() if not c.infers_skill)
@@ -95,10 +91,6 @@ def _online(args: argparse.Namespace) -> int:
 
 
 def _online_runs(args: argparse.Namespace, runs: list[str]) -> int:
-    # lazy: the command's machinery loads when it runs (a fast `dvfb --help`)
-    from dvfb.runs.layout import FinetuneRun
-    from dvfb.workflows.finetune import finetune
-
     many = len(runs) > 1
     done = finetune(runs if many else runs[0], args.task[0], snapshot=args.snapshot, seed=args.seed,
                     finetune=_online_options(args), resume=args.resume, overwrite=args.overwrite,

@@ -84,9 +84,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from dvfb.core.errors import CheckpointError, ConfigError
 from dvfb.data.batch import Batch
 from dvfb.data.samplers import LoaderShards
-from dvfb.errors import CheckpointError, ConfigError
 
 _STATE_FORMAT = 1
 _BYTES_PER_FLOAT = 4

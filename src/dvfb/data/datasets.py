@@ -20,7 +20,7 @@ The physics vector is the environment's ``physics_state()`` (dvfb.envs): MuJoCo'
 ``rand_vec``; ``dataset.json`` gives its layout. Its first ``nq + nv + na`` values are dm_control's
 ``physics.get_state()``, ExORL's physics column.
 
-* ``dvfb dataset export`` (:func:`dvfb.workflows.datasets.export_run`) writes a pre-training run's
+* ``dvfb dataset export`` (:func:`dvfb.workflows.dataset_export.export_run`) writes a pre-training run's
   replay (its final resume checkpoint) as a dataset with :func:`write_dataset`; the run must have
   recorded physics (``--replay.record-physics true``). Only finished episodes are written; the
   episode in progress, if any, is left out.
@@ -58,9 +58,9 @@ import numpy as np
 import torch
 
 from dvfb import __version__, envs
+from dvfb.core.errors import ConfigError, DvfbError, RunDirError
+from dvfb.core.files import read_json, write_json_atomic
 from dvfb.data.buffer import PHYSICS_COLUMN, Column, ReplayBuffer, physics_columns
-from dvfb.errors import ConfigError, DvfbError, RunDirError
-from dvfb.files import read_json, write_json_atomic
 
 DATASET_FORMAT = 1
 INFO_FILE = "dataset.json"

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from dvfb.config import param
-from dvfb.errors import CheckpointError, ConfigError
+from dvfb.core.config import param
+from dvfb.core.errors import CheckpointError, ConfigError
 
 REPLAY_SAMPLINGS = ("uniform", "loader_shards")
 

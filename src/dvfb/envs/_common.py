@@ -46,7 +46,7 @@ def _mujoco_state_api():
     """``mujoco`` and the state spec of a mid-episode checkpoint: everything MuJoCo needs to
     continue an episode bit for bit. Imported here, not at the top: mujoco's import reads MUJOCO_GL,
     whose errors the rendering code reports with advice (dvfb.workflows.video)."""
-    import mujoco
+    import mujoco  # late: its import reads MUJOCO_GL (see above)
 
     return mujoco, mujoco.mjtState.mjSTATE_INTEGRATION
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 
+from dvfb.envs.gym_env import DMCGymEnv
 from dvfb.envs.registry import check_domain, domain_module, resolve_task
 
 
@@ -27,7 +28,7 @@ def make(
         render_mode: None or ``"rgb_array"``.
 
     Raises:
-        dvfb.errors.ConfigError: unknown name (the message lists the valid names), or a task
+        dvfb.core.errors.ConfigError: unknown name (the message lists the valid names), or a task
             whose optional extra is not installed (the message says how to install it).
     """
     task_spec = resolve_task(name, reward_free=reward_free)
@@ -35,7 +36,6 @@ def make(
     module = domain_module(task_spec.domain)
     if hasattr(module, "make_gym_env"):  # a domain with its own front end (Meta-World)
         return module.make_gym_env(task_spec, seed, reward_free, render_mode)
-    from dvfb.envs.gym_env import DMCGymEnv
 
     dmc_env = module.build_environment(task_spec.task, seed=seed)
     return DMCGymEnv(task_spec, dmc_env, reward_free=reward_free, render_mode=render_mode)

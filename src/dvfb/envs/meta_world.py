@@ -37,10 +37,10 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
+from dvfb.core.errors import ConfigError
 from dvfb.envs._common import (mujoco_state, physics_layout, physics_setter, physics_vector, random_state_to_list,
                                set_mujoco_state, set_random_state)
 from dvfb.envs.registry import TaskSpec
-from dvfb.errors import ConfigError
 
 SUPPORTED_VERSION = "3.0.0"
 INSTALL_HINT = "pip install -e '.[metaworld]'  (or: pip install metaworld==3.0.0)"
@@ -62,6 +62,8 @@ def _import_metaworld():
     if version != SUPPORTED_VERSION:
         raise ConfigError(f"metaworld {version} is installed, but dvfb's Meta-World tasks are checked against "
                           f"metaworld {SUPPORTED_VERSION} only: {INSTALL_HINT}")
+    # metaworld is the optional extra, checked just above (~0.5 s to import); mujoco, late as in
+    # dvfb.envs._common: its import reads MUJOCO_GL
     import mujoco
     import metaworld
     from metaworld import sawyer_xyz_env

@@ -13,7 +13,7 @@ import importlib
 import importlib.util
 from types import ModuleType
 
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 
 
 @dataclasses.dataclass(frozen=True)

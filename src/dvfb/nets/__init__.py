@@ -7,7 +7,11 @@
 * :mod:`~dvfb.nets.features` -- the SF family's feature learners (registered by name);
 * :mod:`~dvfb.nets.stats` -- :class:`RunningMeanStd`.
 
-Every name is also importable from ``dvfb.nets``. The intrinsic-reward networks live in :mod:`dvfb.rewards`.
+Every name is also importable from ``dvfb.nets``. The layer also holds what a method's networks
+stand on: :mod:`~dvfb.nets.skills` (a method's skill), :mod:`~dvfb.nets.execution`
+(precision, compilation, the device), :mod:`~dvfb.nets.learner` (the learner contract) and
+:mod:`~dvfb.nets.members` (the member axis of groups). The intrinsic-reward networks live in
+:mod:`dvfb.rewards`.
 """
 
 from dvfb.nets.geometry import NORM_FLOOR, project_to_sphere, sample_z_prior  # noqa: F401

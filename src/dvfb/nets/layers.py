@@ -18,7 +18,7 @@ def full_precision(x: torch.Tensor) -> torch.Tensor:
 
 def call_network(net: nn.Module, *inputs: torch.Tensor) -> torch.Tensor:
     """``net(*inputs)``: the default way of calling a network where a caller may pass another
-    (e.g. an agent's :class:`~dvfb.execution.NetRunner`, for precision and compilation)."""
+    (e.g. an agent's :class:`~dvfb.nets.execution.NetRunner`, for precision and compilation)."""
     return net(*inputs)
 
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import dataclasses
 
 from dvfb.agents import get_spec
-from dvfb.config import flag_name
-from dvfb.errors import ConfigError
-from dvfb.protocols import dual_value, latent_search, urlb, zero_shot  # noqa: F401  (registration)
+from dvfb.core.config import flag_name
+from dvfb.core.errors import ConfigError
+from dvfb.protocols import dual_value, latent_search, urlb, zeroshot  # noqa: F401  (registration)
 from dvfb.protocols import online_inference  # noqa: F401  (registration)
 from dvfb.protocols.base import (
     FINETUNERS,

@@ -22,8 +22,8 @@ import torch
 from torch import nn
 
 from dvfb.agents.registry import get_spec
-from dvfb.config import param, require_updates
-from dvfb.errors import ConfigError
+from dvfb.core.config import param, require_updates
+from dvfb.core.errors import ConfigError
 from dvfb.nets.learner import Learner, ReplayNeeds
 
 # Where the skill of a task can come from: interaction with the task (every protocol), samples of

@@ -33,9 +33,9 @@ import torch
 from torch import nn
 
 from dvfb.agents.base import Model, ReplayNeeds
-from dvfb.config import param
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError
 from dvfb.data import Batch
-from dvfb.errors import ConfigError
 from dvfb.nets import (
     TwinCritic,
     adam,

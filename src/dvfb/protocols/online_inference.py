@@ -32,8 +32,8 @@ import torch
 from torch import nn
 
 from dvfb.agents.base import Model, ReplayNeeds
-from dvfb.config import param
-from dvfb.errors import ConfigError
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError
 from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner, reward_features
 
 # The features a method's task reward is linear in (protocols.base.reward_features): FB's reward of

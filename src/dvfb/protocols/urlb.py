@@ -27,9 +27,9 @@ import torch
 from torch import nn
 
 from dvfb.agents.base import ReplayNeeds
-from dvfb.config import param
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError
 from dvfb.data import Batch
-from dvfb.errors import ConfigError
 from dvfb.nets import make_target
 from dvfb.protocols.base import Finetuner, FinetuneSchedule, register_finetuner
 

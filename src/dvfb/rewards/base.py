@@ -15,7 +15,7 @@ reads them with :meth:`IntrinsicReward.skills`: the stored skill ``batch.z``, or
 owner names in ``skill_column`` (DVFB's B labels, ``batch.columns["b_label"]``).
 
 ``run(net, *inputs)`` is how a module calls its networks: agents pass their
-:class:`~dvfb.execution.NetRunner` so that precision and compilation apply; the default calls
+:class:`~dvfb.nets.execution.NetRunner` so that precision and compilation apply; the default calls
 the network directly.
 """
 
@@ -26,9 +26,9 @@ from typing import Callable
 import torch
 from torch import nn
 
+from dvfb.data import Batch
 from dvfb.nets import adam, call_network
 from dvfb.nets.members import minimise
-from dvfb.data import Batch
 
 Runner = Callable[..., torch.Tensor]
 

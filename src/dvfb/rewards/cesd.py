@@ -35,14 +35,14 @@ import torch
 from torch import nn
 from torch.nn import functional as F_nn
 
+from dvfb.data import Batch
 from dvfb.nets import RunningMeanStd, call_network, orthogonal_init_
 from dvfb.nets.members import member_mean, member_sum, per_member
-from dvfb.data import Batch
+from dvfb.nets.skills import skill_index
 from dvfb.rewards.base import Runner
 from dvfb.rewards.contrastive import CICConfig, CICReward
 from dvfb.rewards.knn import gather_rows
 from dvfb.rewards.proto import sample_one_per_row, sinkhorn_knopp
-from dvfb.skills import skill_index
 
 
 def masked_nearest_distances(rep: torch.Tensor, allowed: torch.Tensor, k: int) -> torch.Tensor:

@@ -20,10 +20,10 @@ import torch
 from torch import nn
 from torch.nn import functional as F_nn
 
-from dvfb.config import param
+from dvfb.core.config import param
+from dvfb.data import Batch
 from dvfb.nets import call_network, mlp, orthogonal_init_
 from dvfb.nets.members import member_mean, row_products
-from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.knn import KNNConfig, ParticleEntropy
 

@@ -18,12 +18,12 @@ from dataclasses import dataclass
 import torch
 from torch.nn import functional as F_nn
 
-from dvfb.config import param
+from dvfb.core.config import param
+from dvfb.data import Batch
 from dvfb.nets import call_network, mlp, orthogonal_init_
 from dvfb.nets.members import member_mean
-from dvfb.data import Batch
+from dvfb.nets.skills import skill_index
 from dvfb.rewards.base import IntrinsicReward, Runner
-from dvfb.skills import skill_index
 
 
 @dataclass

@@ -13,11 +13,11 @@ from dataclasses import dataclass
 
 import torch
 
-from dvfb.config import param
-from dvfb.errors import ConfigError
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError
+from dvfb.data import Batch
 from dvfb.nets import TwinHead, call_network
 from dvfb.nets.members import member_mean
-from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 
 

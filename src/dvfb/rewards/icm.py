@@ -20,10 +20,10 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from dvfb.config import param
+from dvfb.core.config import param
+from dvfb.data import Batch
 from dvfb.nets import call_network, layernorm_tanh_layer, mlp, orthogonal_init_
 from dvfb.nets.members import member_mean
-from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.knn import NORMALISERS, KNNConfig, ParticleEntropy
 

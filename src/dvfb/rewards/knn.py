@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from dvfb.config import param
-from dvfb.errors import ConfigError
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError
 from dvfb.nets import RunningMeanStd
 from dvfb.nets.members import per_member
 

@@ -26,11 +26,11 @@ import torch
 from torch import nn
 from torch.nn import functional as F_nn
 
-from dvfb.config import param
-from dvfb.errors import ConfigError
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError
+from dvfb.data import Batch
 from dvfb.nets import call_network, make_target, mlp, orthogonal_init_, soft_update_
 from dvfb.nets.members import MemberGenerators, member_mean, take_rows
-from dvfb.data import Batch
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.knn import nearest_distances
 

@@ -30,13 +30,13 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from dvfb.config import param
+from dvfb.core.config import param
+from dvfb.data import Batch
 from dvfb.nets import adam, call_network, mlp, orthogonal_init_
 from dvfb.nets.members import member_mean, randn
-from dvfb.data import Batch
+from dvfb.nets.skills import skill_index
 from dvfb.rewards.base import IntrinsicReward, Runner
 from dvfb.rewards.diayn import rowwise_cross_entropy
-from dvfb.skills import skill_index
 
 
 @dataclass

@@ -27,13 +27,13 @@ does not).
 
 The rooms: :mod:`~dvfb.runs.directory` (the run directory and its lock),
 :mod:`~dvfb.runs.metrics`, :mod:`~dvfb.runs.checkpoints` (their public names are importable from
-``dvfb.runs``, with the atomic files of :mod:`dvfb.files`); :mod:`~dvfb.runs.layout` (the kinds of
+``dvfb.runs``, with the atomic files of :mod:`dvfb.core.files`); :mod:`~dvfb.runs.layout` (the kinds of
 run, their paths, records and discovery), :mod:`~dvfb.runs.records`, :mod:`~dvfb.runs.run_config`,
 :mod:`~dvfb.runs.presets`, :mod:`~dvfb.runs.snapshots` and :mod:`~dvfb.runs.migrations` (imported
 by name: they load the agents' registry).
 """
 
-from dvfb.files import read_json, write_json_atomic  # noqa: F401
+from dvfb.core.files import read_json, write_json_atomic  # noqa: F401
 from dvfb.runs.checkpoints import (  # noqa: F401
     CHECKPOINT_SUFFIX,
     LATEST_POINTER,

@@ -11,8 +11,8 @@ from typing import Any
 
 import torch
 
-from dvfb.errors import CheckpointError
-from dvfb.files import _atomic_write, _remove_stale_temp_files
+from dvfb.core.errors import CheckpointError
+from dvfb.core.files import _atomic_write, _remove_stale_temp_files
 from dvfb.runs.directory import _NAME_PATTERN, RunDir, _as_run_dir, _check_name
 
 LATEST_POINTER = "latest"

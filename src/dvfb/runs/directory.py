@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import json
 import os
 import platform
@@ -17,9 +18,9 @@ from typing import IO, Any, TypeVar
 import torch
 
 from dvfb import __version__
-from dvfb.config import load_json, save_json, to_dict
-from dvfb.errors import ConfigError, RunDirError
-from dvfb.files import _TEMP_MARK, _atomic_write, read_json, write_json_atomic
+from dvfb.core.config import load_json, save_json, to_dict
+from dvfb.core.errors import ConfigError, RunDirError
+from dvfb.core.files import _TEMP_MARK, _atomic_write, read_json, write_json_atomic
 from dvfb.runs import machine
 
 T = TypeVar("T")
@@ -214,8 +215,6 @@ class RunLock:
         self.created_directory = False
 
     def __enter__(self) -> RunLock:
-        import fcntl
-
         try:
             if not self.path.exists():
                 self.path.mkdir(parents=True)
@@ -247,8 +246,6 @@ class RunLock:
     def holder(path: str | os.PathLike) -> str | None:
         """The process id written by the live holder of ``path``'s lock, or None when nobody
         holds it (no lock file, or a stale one of a dead process)."""
-        import fcntl
-
         try:
             file = open(Path(path) / LOCK_FILE, encoding="utf-8")
         except OSError:

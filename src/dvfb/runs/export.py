@@ -20,22 +20,28 @@ import json
 import os
 import shlex
 import shutil
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
 
 from dvfb import __version__
 from dvfb.agents import Model, make_model
-from dvfb.config import to_dict
+from dvfb.core.config import to_dict
+from dvfb.core.errors import CheckpointError, ConfigError, RunDirError
+from dvfb.core.files import read_json, write_json_atomic
 from dvfb.data import ReplayBuffer
 from dvfb.data.buffer import PHYSICS_COLUMN
-from dvfb.errors import CheckpointError, ConfigError, RunDirError
-from dvfb.files import read_json, write_json_atomic
+from dvfb.runs.checkpoints import save_snapshot
 from dvfb.runs.directory import EXPORT_FORMAT, check_writable, is_export_config
-from dvfb.runs.layout import PRETRAIN, PretrainRun, run_kind
+from dvfb.runs.layout import PRETRAIN, PretrainRun, run_kind, snapshot_name
 from dvfb.runs.run_config import PretrainConfig, run_config_from_dict
+from dvfb.runs.snapshots import load_model, snapshot_state
 
 EXPORT_VERSION = 1
 MODEL_FILE, CONFIG_FILE, CARD_FILE, INFERENCE_FILE = ("model.safetensors", "config.json", "README.md",
@@ -214,9 +220,6 @@ def write_export(out: str | os.PathLike, model: Model, config: PretrainConfig, *
     ``out`` must be absent or empty (or, with ``overwrite``, an exported model). ``commands``: every
     command that made the run (``command``, the first, by default); ``zero_shot_budget``: per task,
     what each zero-shot number cost (:func:`evaluation_budget`)."""
-    from safetensors import SafetensorError
-    from safetensors.torch import save_file
-
     out = Path(out)
     _check_out(out, overwrite)
     weights = _weights(model)
@@ -276,8 +279,6 @@ def export_model(run: PretrainRun, out: str | os.PathLike, *, snapshot: int | No
                  with_inference_data: bool = False, inference_size: int = DEFAULT_INFERENCE_SIZE,
                  overwrite: bool = False) -> Path:
     """Export the run's snapshot (the newest by default) with its final zero-shot results."""
-    from dvfb.runs.snapshots import load_model
-
     if inference_size < 1:
         raise ConfigError(f"--inference-size {inference_size} is out of range: it must be >= 1")
     _check_out(Path(out), overwrite)  # before the model is read
@@ -307,9 +308,6 @@ def run_commands(run: PretrainRun) -> list[str]:
 
 def load_export(path: str | os.PathLike, device: str | torch.device = "cpu") -> Export:
     """Read an exported model (no pickle is read: weights from safetensors, the rest JSON)."""
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
     path = Path(path)
     info = read_json(path / CONFIG_FILE, CheckpointError)
     if not isinstance(info, dict) or info.get("format") != EXPORT_FORMAT:
@@ -365,9 +363,6 @@ def _width(info: dict, space: str, path: Path) -> int:
 def _inference_data(file: Path, obs_dim: int) -> dict[str, np.ndarray]:
     """The arrays of ``inference_data.npz``: observations and next observations of the model's width,
     as many of each (a damaged or truncated file is named, not a zip error from numpy)."""
-    import zipfile
-    import zlib
-
     try:
         with np.load(file, allow_pickle=False) as npz:
             data = {key: npz[key] for key in npz.files}
@@ -394,10 +389,6 @@ def unpack_export(path: str | os.PathLike, run_dir: str | os.PathLike, overwrite
 
 
 def _unpacked(export: Export, run_dir: str | os.PathLike, overwrite: bool, command: list[str] | None) -> PretrainRun:
-    from dvfb.runs.checkpoints import save_snapshot
-    from dvfb.runs.layout import snapshot_name
-    from dvfb.runs.snapshots import snapshot_state
-
     run = PretrainRun.create(run_dir, export.config, overwrite=overwrite, command=command)
     modules = {name: module.state_dict() for name, module in export.model.snapshot_modules().items()}
     frames = int(export.info["frames"])

@@ -34,8 +34,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from dvfb.errors import ConfigError, RunDirError
-from dvfb.files import read_json, write_json_atomic
+from dvfb.core.errors import ConfigError, RunDirError
+from dvfb.core.files import read_json, write_json_atomic
 from dvfb.runs.checkpoints import latest_checkpoint, list_snapshots, load_checkpoint
 from dvfb.runs.directory import CONFIG_FILE, EXPORT_FORMAT, META_FILE, RunDir
 from dvfb.runs.migrations import kind_from_config

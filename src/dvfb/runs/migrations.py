@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from dvfb.errors import CheckpointError
+from dvfb.core.errors import CheckpointError
 
 RESUME_FORMAT = 2
 SNAPSHOT_FORMAT = 2

@@ -14,8 +14,8 @@ Each method adds its own part in its :class:`~dvfb.agents.registry.AgentSpec` (`
 from __future__ import annotations
 
 from dvfb.agents import agent_names, get_spec
-from dvfb.config import merge, replace
-from dvfb.errors import ConfigError
+from dvfb.core.config import merge, replace
+from dvfb.core.errors import ConfigError
 from dvfb.runs.run_config import DEFAULT_AGENT, GENERIC_PRESETS, PRESETS, PretrainConfig, run_config_class
 
 

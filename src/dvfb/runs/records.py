@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from dvfb.errors import RunDirError
-from dvfb.files import read_json, write_json_atomic
+from dvfb.core.errors import RunDirError
+from dvfb.core.files import read_json, write_json_atomic
 
 
 @dataclass(kw_only=True)

@@ -25,11 +25,11 @@ from pathlib import Path
 from typing import Any
 
 from dvfb.agents import get_spec
-from dvfb.config import flag_name, from_dict, param, require_updates, seed_param
+from dvfb.core.config import flag_name, from_dict, param, require_updates, seed_param
+from dvfb.core.errors import ConfigError
+from dvfb.core.files import read_json
 from dvfb.data import ReplaySamplingConfig
-from dvfb.errors import ConfigError
-from dvfb.execution import DEVICES, PerfConfig
-from dvfb.files import read_json
+from dvfb.nets.execution import DEVICES, PerfConfig
 from dvfb.protocols import FinetuneSchedule, protocols_of
 from dvfb.runs.migrations import migrate_finetune_run_config, migrate_run_config
 from dvfb.runs.wandb_sink import LogConfig

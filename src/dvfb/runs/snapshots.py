@@ -7,9 +7,9 @@ from __future__ import annotations
 import torch
 
 from dvfb.agents import Agent, Model, make_model
-from dvfb.config import to_dict
-from dvfb.errors import CheckpointError, ConfigError
-from dvfb.execution import resolve_device
+from dvfb.core.config import to_dict
+from dvfb.core.errors import CheckpointError, ConfigError
+from dvfb.nets.execution import resolve_device
 from dvfb.runs.checkpoints import load_snapshot
 from dvfb.runs.layout import PretrainRun, snapshot_name
 from dvfb.runs.migrations import SNAPSHOT_FORMAT, check_snapshot_format

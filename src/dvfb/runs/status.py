@@ -14,7 +14,7 @@ import os
 import time
 from pathlib import Path
 
-from dvfb.errors import RunDirError
+from dvfb.core.errors import RunDirError
 from dvfb.runs.checkpoints import latest_checkpoint
 from dvfb.runs.directory import RunLock
 from dvfb.runs.export import describe_export, is_export
@@ -55,7 +55,7 @@ def _progress(run, target: int, finished: int | None) -> dict:
 
 def run_status(path: str | os.PathLike) -> dict:
     """The status of the run (or exported model) at ``path`` (module docstring); a directory that is
-    neither is a :class:`~dvfb.errors.RunDirError`."""
+    neither is a :class:`~dvfb.core.errors.RunDirError`."""
     path = Path(path)
     if is_export(path):
         return {"kind": "export", "path": str(path), "description": describe_export(path)}

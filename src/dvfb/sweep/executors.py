@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from dvfb.errors import DvfbError, RunInterrupted
+from dvfb.core.errors import DvfbError, RunInterrupted
 from dvfb.runs import read_json, write_json_atomic
 from dvfb.runs.machine import cores
 from dvfb.sweep import spec
@@ -62,6 +62,7 @@ def _import_submitit():
     previous = os.environ.get("SUBMITIT_LOG_LEVEL")
     os.environ["SUBMITIT_LOG_LEVEL"] = "NOCONFIG"
     try:
+        # inside the NOCONFIG set above (its import configures logging)
         import submitit
         import submitit.helpers
     finally:

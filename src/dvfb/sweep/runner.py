@@ -12,11 +12,11 @@ from pathlib import Path
 
 from dvfb.analysis.common import AnalysisError
 from dvfb.analysis.report import make_report
-from dvfb.config import format_value
-from dvfb.errors import ConfigError, DvfbError
+from dvfb.core.config import format_value
+from dvfb.core.errors import ConfigError, DvfbError
 from dvfb.runs import LOCK_FILE, RunLock, last_metric_record, read_json, recent_rate, write_json_atomic
-from dvfb.sweep import spec
 from dvfb.runs.machine import cores
+from dvfb.sweep import spec
 from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, _sbatch_options, alive_jobs
 from dvfb.sweep.spec import Cell, SweepConfig
 from dvfb.sweep.units import (KEPT_FILES, SweepDir, command, group_of, is_done, jobs_of, mark_failed,

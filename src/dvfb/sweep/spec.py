@@ -25,9 +25,9 @@ from typing import Any
 
 from dvfb import envs
 from dvfb.agents import agent_names, get_spec
-from dvfb.config import (SEED_MAX, canonical_key, field_type, flag_name, format_value, from_dict, is_list_type, merge,
-                         param, parse_text, to_dict)
-from dvfb.errors import ConfigError
+from dvfb.core.config import (SEED_MAX, canonical_key, field_type, flag_name, format_value, from_dict, is_list_type,
+                              merge, param, parse_text, to_dict)
+from dvfb.core.errors import ConfigError
 from dvfb.runs import read_json
 from dvfb.runs.presets import preset_config
 from dvfb.runs.run_config import run_config_class
@@ -120,7 +120,7 @@ class Cell:
     axes: tuple[str, ...]  # the keys of ``values`` that are swept (part of the name)
 
     def overrides(self) -> dict:
-        """The override values as the nested dict that :func:`dvfb.config.merge` takes."""
+        """The override values as the nested dict that :func:`dvfb.core.config.merge` takes."""
         nested: dict = {}
         for key, value in self.values:
             *sections, name = key.split(".")

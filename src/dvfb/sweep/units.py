@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dvfb.errors import DvfbError
+from dvfb.core.errors import DvfbError
 from dvfb.runs import latest_checkpoint, read_json, write_json_atomic
 from dvfb.runs.layout import FinetuneRun, PretrainRun
 from dvfb.sweep import spec

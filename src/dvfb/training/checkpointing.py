@@ -8,8 +8,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Callable
 
-from dvfb.errors import NonFiniteLossError, RunDirError
-from dvfb.training.metrics import MetricWindow
+from dvfb.core.errors import NonFiniteLossError, RunDirError
+from dvfb.training.metric_windows import MetricWindow
 from dvfb.training.signals import StopSignals, interrupted, run_directories
 
 
@@ -41,7 +41,7 @@ class ResumeCheckpoints:
     * At an episode end, once ``every`` steps have passed since the last checkpoint, and at the
       last step (:meth:`episode_end`).
     * On SIGTERM / SIGINT (:class:`StopSignals`): after the current step, a checkpoint (mid-episode
-      if need be) unless one was just written, then :class:`~dvfb.errors.RunInterrupted`
+      if need be) unless one was just written, then :class:`~dvfb.core.errors.RunInterrupted`
       (:meth:`after_step`).
 
     Every checkpoint checks the metric window first (:meth:`MetricWindow.check`), so a non-finite

@@ -9,7 +9,7 @@ import time
 
 from tqdm import tqdm
 
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 
 
 def notify(message: str) -> None:
@@ -26,7 +26,7 @@ PROGRESS_ENV = "DVFB_PROGRESS_SECONDS"
 
 def progress_interval() -> float:
     """The seconds between progress lines off a terminal: ``DVFB_PROGRESS_SECONDS`` (default 30; 0:
-    a line at every step). A value that is not a number >= 0 is a :class:`~dvfb.errors.ConfigError`."""
+    a line at every step). A value that is not a number >= 0 is a :class:`~dvfb.core.errors.ConfigError`."""
     text = os.environ.get(PROGRESS_ENV, "30")
     try:
         value = float(text)

@@ -8,12 +8,12 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
-from dvfb.errors import RunInterrupted
+from dvfb.core.errors import RunInterrupted
 
 
 class StopSignals:
     """SIGTERM and SIGINT ask the loop to stop: it finishes its current step, writes a checkpoint and
-    raises :class:`~dvfb.errors.RunInterrupted`. A second SIGINT stops at once (KeyboardInterrupt).
+    raises :class:`~dvfb.core.errors.RunInterrupted`. A second SIGINT stops at once (KeyboardInterrupt).
 
     Handlers are installed only in the main thread (signals cannot be caught elsewhere) and the
     previous ones are restored on exit.

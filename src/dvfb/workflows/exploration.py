@@ -178,6 +178,7 @@ def analyze_exploration(run_path: str | Path, *, skills: int = 10, repeats: int 
 
 def _draw_maze(ax) -> None:
     """The maze's arena (+-0.3) and its plus-shaped interior walls (docs/tasks.md §6), to scale."""
+    # here, not at the top: matplotlib takes ~0.35 s to import and only the plots need it
     from matplotlib.patches import Rectangle
 
     ax.add_patch(Rectangle((-0.3, -0.3), 0.6, 0.6, fill=False, edgecolor="0.3", lw=1))
@@ -188,6 +189,7 @@ def _draw_maze(ax) -> None:
 
 
 def _plot(path: Path, positions: np.ndarray, coords: Coordinates, dt: float, summary: dict) -> None:
+    # here, not at the top: matplotlib takes ~0.35 s to import and only the plots need it
     from matplotlib import colormaps
     from matplotlib.figure import Figure
 

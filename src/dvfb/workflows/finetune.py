@@ -32,9 +32,9 @@ import torch
 
 from dvfb import envs
 from dvfb.agents import get_spec
-from dvfb.config import merge, to_dict
+from dvfb.core.config import merge, to_dict
+from dvfb.core.errors import CheckpointError, ConfigError
 from dvfb.data import ReplayBuffer
-from dvfb.errors import CheckpointError, ConfigError
 from dvfb.nets.learner import Learner
 from dvfb.protocols import Finetuner, check_finetune_options, finetuner_class, resolve_finetuner, zero_shot_protocol
 from dvfb.runs import RunDir, RunLock, check_writable
@@ -70,10 +70,10 @@ def finetune(run_dir: str | Path | Sequence[str | Path], task: str, *, snapshot:
     each action is one batched pass for all members. The runs must be one method with one
     configuration (seeds aside) and have the snapshot. As pre-training: options are checked and the
     directories' writability is tested before any work, one process writes a fine-tuning run at a
-    time, SIGTERM/SIGINT checkpoint the current step and raise :class:`~dvfb.errors.RunInterrupted`,
+    time, SIGTERM/SIGINT checkpoint the current step and raise :class:`~dvfb.core.errors.RunInterrupted`,
     a failed resume changes no file and resuming a finished run is a no-op. In a group, a member
     whose loss or action goes non-finite stops alone (its one line); the others finish, and the call
-    then raises :class:`~dvfb.errors.NonFiniteLossError`.
+    then raises :class:`~dvfb.core.errors.NonFiniteLossError`.
 
     ``log``: overrides of the pre-training run's ``log`` section (``{"wandb": True}``: also log to
     Weights & Biases, docs/methods.md, "Logging to Weights & Biases"). ``torch_threads``: the

@@ -13,13 +13,13 @@ from typing import Callable
 
 import numpy as np
 
+from dvfb.core.errors import CheckpointError, ConfigError, NonFiniteLossError
 from dvfb.data import Batch
-from dvfb.errors import CheckpointError, ConfigError, NonFiniteLossError
 from dvfb.nets.learner import Learner
 from dvfb.nets.members import drop_members, stack_agents
 from dvfb.runs.run_config import agent_sections
 from dvfb.training.checkpointing import ResumeCheckpoints, checkpoint_note
-from dvfb.training.metrics import MetricWindow
+from dvfb.training.metric_windows import MetricWindow
 from dvfb.training.progress import notify
 from dvfb.training.rollout import Lane, Observer, Policy
 

@@ -40,11 +40,11 @@ from typing import Sequence
 
 from dvfb import envs
 from dvfb.agents import get_spec, make_agent
-from dvfb.config import replace, to_dict
+from dvfb.core.config import replace, to_dict
+from dvfb.core.errors import CheckpointError, ConfigError
 from dvfb.data import ReplayBuffer, physics_columns, read_dataset, read_info
 from dvfb.data.datasets import check_same_data
-from dvfb.errors import CheckpointError, ConfigError
-from dvfb.execution import resolve_device
+from dvfb.nets.execution import resolve_device
 from dvfb.nets.members import member_slice
 from dvfb.runs import RunDir, RunLock, save_snapshot
 from dvfb.runs.layout import PretrainRun, snapshot_name
@@ -78,11 +78,11 @@ def pretrain(config: PretrainConfig, run_dir: str | Path | Sequence[str | Path],
     snapshots and resume checkpoints (each one a separate run's, so a member may also be resumed
     alone); a group's networks are stacked, so an update and an action are one batched pass for all.
     SIGTERM/SIGINT write a checkpoint (mid-episode if need be) and raise
-    :class:`~dvfb.errors.RunInterrupted`; ``resume`` continues exactly from it (all members of a
+    :class:`~dvfb.core.errors.RunInterrupted`; ``resume`` continues exactly from it (all members of a
     group must stand at the same step). A failed resume changes no file; resuming a finished run is
     a no-op. Disk errors end the run with one line and leave the previous checkpoint intact. In a
     group, a member whose loss or action goes non-finite stops with the usual one line naming its
-    run; the others finish, and the call then raises :class:`~dvfb.errors.NonFiniteLossError`.
+    run; the others finish, and the call then raises :class:`~dvfb.core.errors.NonFiniteLossError`.
     With ``config.processes`` > 1 a group's members are split over that many child processes, each
     training its share as a group (docs/members.md, "A group over several processes").
     """

@@ -16,6 +16,7 @@ checkpoints and stops rather than train on without its locks.
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
 import os
 import signal
@@ -24,8 +25,10 @@ import traceback
 from multiprocessing.connection import wait
 from typing import Any, Callable, Sequence
 
-from dvfb import errors
-from dvfb.errors import DvfbError, RunInterrupted
+import torch
+
+from dvfb.core import errors
+from dvfb.core.errors import DvfbError, RunInterrupted
 from dvfb.runs.machine import cores
 
 
@@ -56,8 +59,6 @@ def _die_with(parent: int) -> None:
     """Have the kernel send this process SIGTERM when ``parent`` dies (Linux's PR_SET_PDEATHSIG): a
     child whose command was killed outright checkpoints and stops instead of training on in
     directories whose locks died with the command."""
-    import ctypes
-
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
@@ -77,8 +78,6 @@ def _send(pipe, message) -> None:
 def _child(target: Callable, args: tuple, threads: int, pipe, parent: int) -> None:
     _die_with(parent)
     # Set before the target builds anything: torch's thread pool sizes itself on first use.
-    import torch
-
     torch.set_num_threads(threads)
 
     def ready(status: Any) -> None:
@@ -144,8 +143,8 @@ def run_in_processes(target: Callable, calls: Sequence[tuple], threads: int, nam
     Once they train, a child that dies (``kill -9``, the out-of-memory killer) or fails stops the
     others with SIGTERM, so that each writes a checkpoint and the group resumes together. Returns when
     every child has ended; raises, after all have ended, the children's errors as one
-    :class:`~dvfb.errors.DvfbError` (the first child's class; a signal received here, or one that
-    killed a child, makes it :class:`~dvfb.errors.RunInterrupted` with that signal).
+    :class:`~dvfb.core.errors.DvfbError` (the first child's class; a signal received here, or one that
+    killed a child, makes it :class:`~dvfb.core.errors.RunInterrupted` with that signal).
     """
     context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch's threads
     children, pipes = [], []

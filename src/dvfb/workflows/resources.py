@@ -13,8 +13,8 @@ import torch
 
 from dvfb import envs
 from dvfb.agents import get_spec
-from dvfb.errors import ConfigError
-from dvfb.execution import resolve_device
+from dvfb.core.errors import ConfigError
+from dvfb.nets.execution import resolve_device
 from dvfb.runs.export import evaluation_run, is_export, remove_evaluation_run
 from dvfb.runs.layout import PretrainRun
 from dvfb.runs.machine import cores, default_torch_threads

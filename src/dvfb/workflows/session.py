@@ -19,14 +19,14 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from dvfb.config import to_dict
-from dvfb.errors import CheckpointError, ConfigError
+from dvfb.core.config import to_dict
+from dvfb.core.errors import CheckpointError, ConfigError
 from dvfb.nets.learner import Learner
 from dvfb.nets.members import member_slice
 from dvfb.runs import MetricsLogger, load_checkpoint, remove_orphaned_checkpoints, save_checkpoint
 from dvfb.runs.migrations import RESUME_FORMAT, check_resume_format
 from dvfb.runs.wandb_sink import WandbSink, stored_wandb_id
-from dvfb.training.metrics import MetricWindow
+from dvfb.training.metric_windows import MetricWindow
 from dvfb.training.progress import notify
 from dvfb.training.rollout import EpisodeState, Lane
 from dvfb.training.seeding import restore_rng_state, rng_state, run_generator

@@ -33,7 +33,7 @@ import torch
 from dvfb import envs
 from dvfb.analysis.common import AnalysisError, json_safe
 from dvfb.analysis.statistics import binned_spearman, spearman
-from dvfb.config import to_dict
+from dvfb.core.config import to_dict
 from dvfb.nets import project_to_sphere
 from dvfb.runs import check_writable, write_json_atomic
 from dvfb.runs.snapshots import load_model
@@ -166,6 +166,7 @@ def analyze_value(run_path: str | Path, task: str, *, skills: int = 16, episodes
 
 def _scatter(path: Path, value: np.ndarray, returns: np.ndarray, lam: np.ndarray, task: str, agent: str,
              rho: float) -> None:
+    # here, not at the top: matplotlib takes ~0.35 s to import and only the plots need it
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(5.6, 4.4), dpi=100, layout="constrained")

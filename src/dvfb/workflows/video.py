@@ -23,12 +23,14 @@ import os
 import time
 from pathlib import Path
 
+import imageio.v2 as iio2
+import imageio.v3 as iio3
 import numpy as np
 import torch
 
 from dvfb import envs
 from dvfb.analysis.common import AnalysisError
-from dvfb.errors import DvfbError
+from dvfb.core.errors import DvfbError
 from dvfb.runs import check_writable
 from dvfb.runs.snapshots import load_model
 from dvfb.training.evaluation import run_episode
@@ -146,9 +148,6 @@ def make_render_env(task: str, seed: int):
 
 def write_video(path: Path, frames: list[np.ndarray], fps: float) -> None:
     """GIF (Pillow, frame duration in ms, looping) or MP4 (ffmpeg, H.264)."""
-    import imageio.v2 as iio2
-    import imageio.v3 as iio3
-
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix.lower() == ".gif":
         # GIF frame delays are whole centiseconds (Pillow truncates milliseconds to them), and viewers

@@ -1,6 +1,6 @@
 """Zero-shot evaluation of a pre-trained run on a task (docs/methods.md §8, "Protocols").
 
-The method's registered zero-shot protocol (:mod:`dvfb.protocols.zero_shot`) finds the skill the
+The method's registered zero-shot protocol (:mod:`dvfb.protocols.zeroshot`) finds the skill the
 policy is evaluated with: reward inference (FB family), the single policy (exploration baselines)
 or skill selection (skill discovery). Protocols that infer skills from data also take
 
@@ -32,13 +32,13 @@ import torch
 
 from dvfb import envs
 from dvfb.agents import Model, get_spec
-from dvfb.config import merge, to_dict
+from dvfb.core.config import merge, to_dict
+from dvfb.core.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.data import PHYSICS_COLUMN, ReplayBuffer, read_dataset, read_info
 from dvfb.data.datasets import check_same_data
-from dvfb.errors import CheckpointError, ConfigError, RunDirError
 from dvfb.nets.members import stack_agents
 from dvfb.protocols import SKILL_SOURCES, ZeroShotProtocol, zero_shot_protocol
-from dvfb.protocols.zero_shot import collect_inference_data, infer_task_vector
+from dvfb.protocols.zeroshot import collect_inference_data, infer_task_vector
 from dvfb.runs import check_writable
 from dvfb.runs.layout import PretrainRun
 from dvfb.runs.records import ZeroShotResult

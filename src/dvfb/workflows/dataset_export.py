@@ -10,9 +10,9 @@ import torch
 
 from dvfb import envs
 from dvfb.agents import get_spec
+from dvfb.core.errors import CheckpointError, ConfigError
 from dvfb.data.buffer import PHYSICS_COLUMN
 from dvfb.data.datasets import DatasetInfo, ProgressFactory, check_output_dir, physics_slice, write_dataset
-from dvfb.errors import CheckpointError, ConfigError
 from dvfb.runs import PRETRAIN_RESUME_KIND
 from dvfb.runs.layout import PretrainRun
 

@@ -23,8 +23,8 @@ import numpy as np
 import torch
 
 from dvfb.agents import get_spec
-from dvfb.errors import ConfigError
-from dvfb.execution import resolve_device
+from dvfb.core.errors import ConfigError
+from dvfb.nets.execution import resolve_device
 from dvfb.runs.export import export_model, is_export, load_export, write_export
 from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run
@@ -151,11 +151,3 @@ def load(path: str | Path, snapshot: int | None = None, device: str | None = Non
     an exported model's directory (see :class:`PretrainedModel`)."""
     return PretrainedModel(path, snapshot, device)
 
-
-def __getattr__(name: str):
-    # The class's old name, kept for one release with a DeprecationWarning (CHANGELOG.md).
-    if name == "PretrainedAgent":
-        warnings.warn("dvfb.api.PretrainedAgent is deprecated and will be removed; use dvfb.api.PretrainedModel",
-                      DeprecationWarning, stacklevel=2)
-        return PretrainedModel
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from dvfb.errors import NonFiniteLossError
+from dvfb.core.errors import NonFiniteLossError
 
 
 class MetricWindow:

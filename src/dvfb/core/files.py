@@ -16,7 +16,7 @@ from typing import IO, Any
 import numpy as np
 import torch
 
-from dvfb.errors import RunDirError
+from dvfb.core.errors import RunDirError
 
 
 _TEMP_MARK = ".tmp-"

@@ -45,8 +45,8 @@ from typing import Any, Callable
 import torch
 from torch import nn
 
-from dvfb.config import param
-from dvfb.errors import ConfigError
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError
 from dvfb.nets import full_precision
 
 log = logging.getLogger(__name__)

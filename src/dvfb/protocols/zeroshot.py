@@ -20,9 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from dvfb.config import param
+from dvfb.core.config import param
+from dvfb.core.errors import ConfigError
 from dvfb.data import ReplayBuffer
-from dvfb.errors import ConfigError
 from dvfb.protocols.base import ZeroShotProtocol, register_zero_shot
 from dvfb.training.observers import EpisodeReturns, ProgressCount, ReplayWriter
 from dvfb.training.rollout import Lane, Policy, rollout

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
-from dvfb.errors import ConfigError
+from dvfb.core.errors import ConfigError
 
 T = TypeVar("T")
 
