@@ -133,11 +133,12 @@ def test_bad_protocol_choices_are_one_line_and_create_nothing(finished_run, argv
     assert not (finished_run / "finetune").exists() and not (finished_run / "zeroshot").exists()
 
 
-def test_verbose_flag_after_the_subcommand(finished_run, capsys):
-    argv = ["zeroshot", str(finished_run), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "-v",
+def test_verbose_flag_after_the_subcommand(finished_run, tmp_path, capsys):
+    run = Path(shutil.copytree(finished_run, tmp_path / "copy"))  # the module's run stays without results
+    argv = ["zeroshot", str(run), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "-v",
             "--overwrite", "--no-progress"]
     assert main(argv) == 0
-    assert (finished_run / "zeroshot" / "point_mass_maze_reach_top_left.json").is_file()
+    assert (run / "zeroshot" / "point_mass_maze_reach_top_left.json").is_file()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -280,9 +281,11 @@ def test_a_signal_changes_no_metric_record_of_a_group_or_a_fine_tuning(finished_
         for key, modules in _snapshot_modules(a, 2500).items():
             for name, tensor in modules.items():
                 assert torch.equal(tensor, _snapshot_modules(b, 2500)[key][name]), (seed, key, name)
-    assert main(["finetune", str(finished_run), *FINETUNE, "--name", "full"]) == 0
-    ft = finished_run / "finetune"
-    _interrupted(["finetune", str(finished_run), *FINETUNE, "--name", "split"], ft / "split" / "metrics" / "train.jsonl")
+    # On a copy: the module's run stays without fine-tunings (a later test copies it and makes its own "full").
+    run = Path(shutil.copytree(finished_run, tmp_path / "fb"))
+    assert main(["finetune", str(run), *FINETUNE, "--name", "full"]) == 0
+    ft = run / "finetune"
+    _interrupted(["finetune", str(run), *FINETUNE, "--name", "split"], ft / "split" / "metrics" / "train.jsonl")
     assert metric_records(ft / "full")["train.jsonl"] and metric_records(ft / "full") == metric_records(ft / "split")
     curve = lambda name: json.loads((ft / name / "curve.json").read_text())["curve"]  # noqa: E731
     assert [p["returns"] for p in curve("full")] == [p["returns"] for p in curve("split")]
