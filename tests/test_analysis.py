@@ -28,54 +28,16 @@ from dvfb.analysis.report import make_report
 from dvfb.analysis.statistics import binned_spearman, quantile_bins, spearman
 from dvfb.protocols.dual_value import FinetuneConfig
 from dvfb.cli import main
-from dvfb.config import merge, save_json
 from dvfb.runs import write_json_atomic
 from dvfb.runs.presets import preset_config
-from dvfb.protocols import protocols_of
-from dvfb.runs.run_config import FinetuneRunConfig
 
-from test_workflows import FAST_INFERENCE, pretrain_args
+from tiny import FAST_INFERENCE, make_finetune_run, make_pretrain_run, md_row, pretrain_args
 
 MAZE_TASK = "point_mass_maze_reach_top_left"
 
 
 # ---------------------------------------------------------------------------------------------
-# synthetic run directories
-
-
-def make_pretrain_run(path: Path, agent: str = "dvfb", domain: str = "walker", seed: int = 0,
-                      use_ce: bool = True, zeroshot: dict[str, float] | None = None,
-                      snapshot_frames: int = 100_000) -> Path:
-    config = preset_config("small", agent=agent, domain=domain, seed=seed)
-    if not use_ce:
-        config = merge(config, {"exploration": {"use_ce": False}})
-    path.mkdir(parents=True)
-    save_json(config, path / "config.json")
-    for task, value in (zeroshot or {}).items():
-        write_json_atomic(path / "zeroshot" / f"{task}.json", {
-            "task": task, "domain": domain, "agent": agent, "preset": "small", "pretrain_seed": seed,
-            "seed": seed, "snapshot_frames": snapshot_frames, "mean_return": value, "std_return": 0.0,
-            "returns": [value], "eval_episodes": 1, "z": [0.0] * 4})
-    return path
-
-
-def make_finetune_run(run: Path, task: str, points: list[tuple[int, float]], name: str | None = None,
-                      seed: int | None = None, finished: bool = True, **finetune) -> Path:
-    parent = json.loads((run / "config.json").read_text())
-    seed = parent["seed"] if seed is None else seed
-    zero_shot, finetuner = protocols_of(parent["agent"])
-    config = FinetuneRunConfig(
-        pretrain_run=str(run), agent=parent["agent"], domain=parent["domain"], task=task, snapshot=100_000, seed=seed,
-        protocol=finetuner.name, inference=zero_shot.config_cls(), finetune=FinetuneConfig(**finetune))
-    path = run / "finetune" / (name or task)
-    path.mkdir(parents=True)
-    save_json(config, path / "config.json")
-    write_json_atomic(path / "curve.json", {
-        "task": task, "domain": parent["domain"], "agent": parent["agent"], "seed": seed,
-        "curve": [{"frames": f, "mean_return": r, "std_return": 0.0, "returns": [r]} for f, r in points]})
-    if finished:
-        write_json_atomic(path / "finetune_summary.json", {"task": task, "frames": points[-1][0]})
-    return path
+# synthetic run directories (tiny.make_pretrain_run and make_finetune_run)
 
 
 @pytest.fixture
@@ -97,14 +59,6 @@ def walker_runs(tmp_path: Path) -> Path:
 def read_csv(path: Path) -> dict[str, dict[str, str]]:
     rows = csv.DictReader(io.StringIO(path.read_text()))
     return {f"{r['domain']}/{r['task']}": r for r in rows}
-
-
-def md_row(markdown: str, domain: str, task: str) -> list[str]:
-    for line in markdown.splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) > 2 and cells[0] == domain and cells[1].strip("*") == task:
-            return cells[2:]
-    raise AssertionError(f"no row {domain}/{task} in\n{markdown}")
 
 
 def md_columns(markdown: str) -> list[str]:

@@ -13,7 +13,7 @@ from scipy import stats
 from dvfb.agents import make_agent
 from dvfb.agents.fbee import choose_most_uncertain, ensemble_uncertainty
 from dvfb.data import Batch
-from tests.tiny import ACT, OBS, random_batch, tiny_run_config
+from tiny import ACT, OBS, random_batch, tiny_run_config
 
 
 def _agents(ensemble: int = 3):

@@ -20,8 +20,7 @@ from dvfb.data import Batch
 from dvfb.runs import RunDir, load_checkpoint, save_checkpoint
 from dvfb.workflows.finetune import finetune
 from dvfb.workflows.pretrain import pretrain
-from test_members import MEMBERS, NOT_BITWISE, _cast, _members
-from tiny import tiny_run_config
+from tiny import MEMBERS, NOT_BITWISE, cast_batch, member_agents, tiny_run_config
 
 UPDATES = 3
 MAZE = "point_mass_maze_reach_top_left"
@@ -31,7 +30,7 @@ SEEDS = [0, 1]
 def _finetuners(name: str, dtype: torch.dtype):
     """Each member's fine-tuner and its twin's, built from the same global stream (a fresh critic's
     initialisation) on the same skill, and the members' replays."""
-    agents, twins, replays = _members(name, dtype)
+    agents, twins, replays = member_agents(name, dtype)
     config = tiny_run_config(name).finetune
     cls = finetuner_class(get_spec(name).finetuner)
     previous = torch.get_default_dtype()
@@ -61,7 +60,7 @@ def _run(name: str, dtype: torch.dtype):
         needs = twins[0].replay_needs()
         group_metrics, twin_metrics = [], []
         for u in range(UPDATES):
-            batches = [_cast(needs.sample(replay, torch.Generator().manual_seed(7 + k + 10 * u)), dtype)
+            batches = [cast_batch(needs.sample(replay, torch.Generator().manual_seed(7 + k + 10 * u)), dtype)
                        for k, replay in enumerate(replays)]
             group_metrics.append(group.update(Batch.stack(batches)))
             twin_metrics.append([twin.update(batch) for twin, batch in zip(twins, batches)])

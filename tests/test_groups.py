@@ -20,7 +20,7 @@ from dvfb.training.metrics import MetricWindow
 from dvfb.workflows.pretrain import pretrain
 from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run
-from tiny import tiny_run_config, tiny_flags
+from tiny import member_agents, tiny_flags, tiny_run_config
 
 SEEDS = [0, 1]
 
@@ -120,9 +120,7 @@ def test_a_non_finite_member_stops_alone(tmp_path, capsys):
 
 
 def test_group_window_and_drop_keep_the_healthy_members_exact():
-    from test_members import _members
-
-    agents, twins, replays = _members("fb", torch.float32)
+    agents, twins, replays = member_agents("fb", torch.float32)
     group = stack_agents(agents)
     with torch.no_grad():
         group.forward_map.heads.second_weight[1].fill_(float("nan"))

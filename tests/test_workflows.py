@@ -16,22 +16,7 @@ import torch
 
 from dvfb.cli import main
 from dvfb.runs import latest_checkpoint, load_checkpoint, load_snapshot
-from tiny import replayed_return
-
-# A network small enough that an update costs a few milliseconds.
-TINY = ["--fb.z-dim", "16", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
-        "--fb.batch-size", "64", "--log-every", "250"]
-# DVFB's own section (an FB run has no --exploration.* flags).
-TINY_EXPLORATION = ["--exploration.contrastive-hidden-dim", "32", "--exploration.rnd-rep-dim", "16",
-                    "--exploration.ce-k", "4"]
-MAZE = ["--domain", "point_mass_maze", "--seed-frames", "500", "--update-every", "4", "--checkpoint-every", "1000"]
-FAST_INFERENCE = ["--inference.steps", "300", "--inference.random-action-steps", "100",
-                  "--inference.samples", "300", "--inference.eval-episodes", "1"]
-
-
-def pretrain_args(run_dir: Path, frames: int, agent: str = "dvfb", extra: list[str] = ()) -> list[str]:
-    return ["pretrain", "--agent", agent, *MAZE, "--frames", str(frames), "--run-dir", str(run_dir),
-            "--no-progress", *TINY, *(TINY_EXPLORATION if agent == "dvfb" else ()), *extra]
+from tiny import FAST_INFERENCE, pretrain_args, replayed_return
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,14 @@
-"""Tiny network sizes and configs shared by the agent and network tests (fast on one CPU thread), and
-a replay of real maze transitions for updates."""
+"""The helpers the test modules share, each defined once here (a test module never imports another):
+
+* tiny network sizes and configs (fast on one CPU thread), a replay of real maze transitions, and
+  seeded random batches;
+* the command line of the tiny maze pre-training of the workflow tests (``pretrain_args``);
+* synthetic run directories with known numbers and a markdown table reader (the report tests);
+* a group's members built as separate agents (the member and group tests).
+
+This directory is on ``sys.path`` (pytest's default rootdir import mode puts a test file's directory
+there, and this one has no ``__init__.py``), so every module imports them as ``from tiny import ...``.
+"""
 
 from dvfb.agents.dvfb import ExplorationConfig
 from dvfb.agents.fb import FBConfig
@@ -145,3 +154,146 @@ def replayed_return(run, task: str, z, seed: int) -> float:
         total += float(reward)
         done = terminated or truncated
     return total
+
+
+# ---------------------------------------------------------------------------------------------
+# The tiny maze pre-trainings of the command-line tests
+
+# A network small enough that an update costs a few milliseconds.
+WORKFLOW_FB = ["--fb.z-dim", "16", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
+               "--fb.batch-size", "64", "--log-every", "250"]
+# DVFB's own section (an FB run has no --exploration.* flags).
+WORKFLOW_EXPLORATION = ["--exploration.contrastive-hidden-dim", "32", "--exploration.rnd-rep-dim", "16",
+                        "--exploration.ce-k", "4"]
+# The maze with updates from 500 frames, every 4 steps, and a checkpoint at each episode's end.
+MAZE_SCHEDULE = ["--domain", "point_mass_maze", "--seed-frames", "500", "--update-every", "4",
+                 "--checkpoint-every", "1000"]
+FAST_INFERENCE = ["--inference.steps", "300", "--inference.random-action-steps", "100",
+                  "--inference.samples", "300", "--inference.eval-episodes", "1"]
+
+
+def pretrain_args(run_dir, frames: int, agent: str = "dvfb", extra=()) -> list[str]:
+    """``dvfb pretrain`` of ``agent`` on the maze with the workflow widths."""
+    return ["pretrain", "--agent", agent, *MAZE_SCHEDULE, "--frames", str(frames), "--run-dir", str(run_dir),
+            "--no-progress", *WORKFLOW_FB, *(WORKFLOW_EXPLORATION if agent == "dvfb" else ()), *extra]
+
+
+# ---------------------------------------------------------------------------------------------
+# Synthetic run directories with known numbers (the report tests)
+
+
+def make_pretrain_run(path, agent: str = "dvfb", domain: str = "walker", seed: int = 0,
+                      use_ce: bool = True, zeroshot: dict[str, float] | None = None,
+                      snapshot_frames: int = 100_000):
+    """A pre-training run directory of the small preset's config (no training) with one zero-shot
+    result per task of ``zeroshot`` (task -> mean return) at ``snapshot_frames``."""
+    from dvfb.config import merge, save_json
+    from dvfb.runs import write_json_atomic
+    from dvfb.runs.presets import preset_config
+
+    config = preset_config("small", agent=agent, domain=domain, seed=seed)
+    if not use_ce:
+        config = merge(config, {"exploration": {"use_ce": False}})
+    path.mkdir(parents=True)
+    save_json(config, path / "config.json")
+    for task, value in (zeroshot or {}).items():
+        write_json_atomic(path / "zeroshot" / f"{task}.json", {
+            "task": task, "domain": domain, "agent": agent, "preset": "small", "pretrain_seed": seed,
+            "seed": seed, "snapshot_frames": snapshot_frames, "mean_return": value, "std_return": 0.0,
+            "returns": [value], "eval_episodes": 1, "z": [0.0] * 4})
+    return path
+
+
+def make_finetune_run(run, task: str, points: list[tuple[int, float]], name: str | None = None,
+                      seed: int | None = None, finished: bool = True, **finetune):
+    """A fine-tuning run of ``run`` (from its 100,000-frame snapshot) whose curve is ``points``
+    (frames, mean return), finished unless ``finished`` is False; ``finetune`` sets FinetuneConfig."""
+    import json
+
+    from dvfb.config import save_json
+    from dvfb.protocols import protocols_of
+    from dvfb.protocols.dual_value import FinetuneConfig
+    from dvfb.runs import write_json_atomic
+    from dvfb.runs.run_config import FinetuneRunConfig
+
+    parent = json.loads((run / "config.json").read_text())
+    seed = parent["seed"] if seed is None else seed
+    zero_shot, finetuner = protocols_of(parent["agent"])
+    config = FinetuneRunConfig(
+        pretrain_run=str(run), agent=parent["agent"], domain=parent["domain"], task=task, snapshot=100_000, seed=seed,
+        protocol=finetuner.name, inference=zero_shot.config_cls(), finetune=FinetuneConfig(**finetune))
+    path = run / "finetune" / (name or task)
+    path.mkdir(parents=True)
+    save_json(config, path / "config.json")
+    write_json_atomic(path / "curve.json", {
+        "task": task, "domain": parent["domain"], "agent": parent["agent"], "seed": seed,
+        "curve": [{"frames": f, "mean_return": r, "std_return": 0.0, "returns": [r]} for f, r in points]})
+    if finished:
+        write_json_atomic(path / "finetune_summary.json", {"task": task, "frames": points[-1][0]})
+    return path
+
+
+def md_row(markdown: str, domain: str, task: str) -> list[str]:
+    """The cells after domain and task of a markdown table's row (a bold task name too)."""
+    for line in markdown.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) > 2 and cells[0] == domain and cells[1].strip("*") == task:
+            return cells[2:]
+    raise AssertionError(f"no row {domain}/{task} in\n{markdown}")
+
+
+# ---------------------------------------------------------------------------------------------
+# A group's members as separate agents (the member and group tests)
+
+MEMBERS = 3
+# SMM's discriminator bias rounds differently, by ~1e-10 after three updates, and on some CPUs one
+# APS feature bias by one ulp (docs/members.md).
+NOT_BITWISE = {"smm": 1e-9, "aps": 1e-7}
+
+
+def member_agents(name: str, dtype, batch_size: int | None = None):
+    """``MEMBERS`` agents built as separate runs with seeds 0, 1, 2 would build them, their replays,
+    and each member's twin (a separate agent with its own copy of the same stream)."""
+    import copy
+
+    import torch
+
+    from dvfb import envs
+    from dvfb.agents import make_agent
+    from dvfb.config import merge
+
+    env = envs.make("point_mass_maze_reach_top_left")
+    obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    try:
+        agents, twins, replays = [], [], []
+        for k in range(MEMBERS):
+            torch.manual_seed(100 + k)
+            config = tiny_run_config(name, seed=k)
+            if batch_size is not None:
+                config = merge(config, {s: {"batch_size": batch_size} for s in ("fb", "sf", "ddpg")
+                                        if hasattr(config, s)})
+            agent = make_agent(name, obs_dim, action_dim, config, "cpu")
+            agent.use_generator(torch.Generator().manual_seed(1000 + k))
+            replays.append(filled_replay(agent, seed=k))
+            twin = copy.deepcopy(agent)
+            twin.use_generator(torch.Generator().manual_seed(0))
+            twin.generator.set_state(agent.generator.get_state())
+            twin.use_generator(twin.generator)
+            agents.append(agent)
+            twins.append(twin)
+    finally:
+        torch.set_default_dtype(previous)
+    return agents, twins, replays
+
+
+def cast_batch(batch, dtype):
+    """``batch`` with every tensor (the extra columns too) in ``dtype``."""
+    from dvfb.data import Batch
+
+    def cast(x):
+        return None if x is None else x.to(dtype)
+    return Batch(cast(batch.obs), cast(batch.action), cast(batch.reward), cast(batch.discount), cast(batch.next_obs),
+                 cast(batch.future_obs), cast(batch.z), {k: cast(v) for k, v in batch.columns.items()})
+
