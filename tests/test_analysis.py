@@ -16,7 +16,6 @@ import json
 import math
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +30,7 @@ from dvfb.cli import main
 from dvfb.runs import write_json_atomic
 from dvfb.runs.presets import preset_config
 
-from tiny import FAST_INFERENCE, make_finetune_run, make_pretrain_run, md_row, pretrain_args
+from tiny import FAST_INFERENCE, make_finetune_run, make_pretrain_run, md_row, pretrain_args, run_cli
 
 MAZE_TASK = "point_mass_maze_reach_top_left"
 
@@ -352,8 +351,7 @@ def test_analyze_exploration_end_to_end(tiny_run: Path, capsys, monkeypatch):
 def run_dvfb(args: list[str], **env: str) -> subprocess.CompletedProcess:
     environment = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
     environment.update(env)
-    return subprocess.run([sys.executable, "-m", "dvfb", *args], capture_output=True, text=True, env=environment,
-                          timeout=300)
+    return run_cli(*args, env=environment, timeout=300)
 
 
 @pytest.mark.slow

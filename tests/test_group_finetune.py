@@ -6,8 +6,6 @@ group resumes exactly; a member that goes non-finite stops alone; and bad groups
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
 import torch
@@ -20,7 +18,7 @@ from dvfb.data import Batch
 from dvfb.runs import RunDir, load_checkpoint, save_checkpoint
 from dvfb.workflows.finetune import finetune
 from dvfb.workflows.pretrain import pretrain
-from tiny import MEMBERS, NOT_BITWISE, cast_batch, member_agents, tiny_run_config
+from tiny import MEMBERS, NOT_BITWISE, cast_batch, member_agents, run_cli, tiny_run_config
 
 UPDATES = 3
 MAZE = "point_mass_maze_reach_top_left"
@@ -207,10 +205,6 @@ def test_a_non_finite_member_stops_its_fine_tuning_alone(fb_group, capsys):
     assert json.loads((poisoned.path / "finetune_summary.json").read_text())["frames"] == 1000
 
 
-def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "dvfb", "finetune", *args], capture_output=True, text=True)
-
-
 @pytest.mark.slow
 def test_bad_group_fine_tunings_are_one_line_and_create_nothing(tmp_path, fb_group):
     aps = [tmp_path / f"aps_s{s}" for s in SEEDS]  # APS has a task regression
@@ -221,7 +215,7 @@ def test_bad_group_fine_tunings_are_one_line_and_create_nothing(tmp_path, fb_gro
         ([str(fb_group[0]), str(fb_group[0]), "--task", MAZE], "a run is listed twice"),
     ]
     for args, message in cases:
-        done = _cli(*args, "--name", "bad", "--no-progress")
+        done = run_cli("finetune", *args, "--name", "bad", "--no-progress")
         assert done.returncode != 0
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1 and message in lines[0], done.stderr

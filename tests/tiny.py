@@ -4,7 +4,8 @@
   seeded random batches;
 * the command line of the tiny maze pre-training of the workflow tests (``pretrain_args``);
 * synthetic run directories with known numbers and a markdown table reader (the report tests);
-* a group's members built as separate agents (the member and group tests).
+* a group's members built as separate agents (the member and group tests);
+* a directory's files (``tree_bytes``) and the ``dvfb`` command as a process (``run_cli``, ``start_cli``).
 
 This directory is on ``sys.path`` (pytest's default rootdir import mode puts a test file's directory
 there, and this one has no ``__init__.py``), so every module imports them as ``from tiny import ...``.
@@ -297,3 +298,35 @@ def cast_batch(batch, dtype):
     return Batch(cast(batch.obs), cast(batch.action), cast(batch.reward), cast(batch.discount), cast(batch.next_obs),
                  cast(batch.future_obs), cast(batch.z), {k: cast(v) for k, v in batch.columns.items()})
 
+
+# ---------------------------------------------------------------------------------------------
+# Files and processes
+
+
+def tree_bytes(root) -> dict:
+    """Every path under ``root`` and its bytes (None for a directory), a lock file's holder pid aside
+    (taking the lock is how a command looks at a run safely): equal before and after means nothing
+    was written, created or removed."""
+    from pathlib import Path
+
+    root = Path(root)
+    return {str(p.relative_to(root)): p.read_bytes() if p.is_file() and p.name != ".lock" else None
+            for p in sorted(root.rglob("*"))}
+
+
+def run_cli(*args: str, env=None, timeout=None):
+    """``python -m dvfb ARGS`` as a separate process (what a user types), run to its end; text output."""
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "dvfb", *args], capture_output=True, text=True, env=env,
+                          timeout=timeout)
+
+
+def start_cli(*args: str):
+    """``python -m dvfb ARGS`` started as a separate process, its output in pipes (text)."""
+    import subprocess
+    import sys
+
+    return subprocess.Popen([sys.executable, "-m", "dvfb", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
