@@ -28,15 +28,11 @@ COMMON = ["--domain", "point_mass_maze", "--log-every", "50", "--torch-threads",
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    """Two episodes of an FB maze run that recorded physics, exported."""
-    root = tmp_path_factory.mktemp("offline")
-    run = root / "source"
-    assert main(["pretrain", "--agent", "fb", *COMMON, "--seed-frames", "500", "--update-every", "4",
-                 "--checkpoint-every", "1000", "--frames", "2000", "--run-dir", str(run),
-                 "--replay.record-physics", "true", *TINY_FB]) == 0
-    export_run(run, root / "maze_data", progress=None)
-    return root / "maze_data"
+def dataset(fb_maze_physics_run: Path, tmp_path_factory) -> Path:
+    """The two episodes of the session's FB maze run that recorded physics (conftest.py), exported."""
+    out = tmp_path_factory.mktemp("offline") / "maze_data"
+    export_run(fb_maze_physics_run, out, progress=None)
+    return out
 
 
 def offline(run: Path, dataset: Path, agent: str, updates: int, *extra: str) -> int:

@@ -2,7 +2,9 @@
 
 * tiny network sizes and configs (fast on one CPU thread), a replay of real maze transitions, and
   seeded random batches;
-* the command line of the tiny maze pre-training of the workflow tests (``pretrain_args``);
+* the command lines of the tiny maze pre-trainings (``pretrain_args``, ``fb_physics_args``), which
+  ``conftest.py`` runs once per session for the tests that share them, and ``copy_run`` for a test
+  that writes into such a run;
 * synthetic run directories with known numbers and a markdown table reader (the report tests);
 * a group's members built as separate agents (the member and group tests);
 * a directory's files (``tree_bytes``) and the ``dvfb`` command as a process (``run_cli``, ``start_cli``).
@@ -158,7 +160,7 @@ def replayed_return(run, task: str, z, seed: int) -> float:
 
 
 # ---------------------------------------------------------------------------------------------
-# The tiny maze pre-trainings of the command-line tests
+# The tiny maze pre-trainings of the command-line tests (conftest.py runs each shared one once)
 
 # A network small enough that an update costs a few milliseconds.
 WORKFLOW_FB = ["--fb.z-dim", "16", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
@@ -174,9 +176,31 @@ FAST_INFERENCE = ["--inference.steps", "300", "--inference.random-action-steps",
 
 
 def pretrain_args(run_dir, frames: int, agent: str = "dvfb", extra=()) -> list[str]:
-    """``dvfb pretrain`` of ``agent`` on the maze with the workflow widths."""
+    """``dvfb pretrain`` of ``agent`` on the maze with the workflow widths (conftest's
+    ``dvfb_maze_run`` is ``pretrain_args(run_dir, 2000)``)."""
     return ["pretrain", "--agent", agent, *MAZE_SCHEDULE, "--frames", str(frames), "--run-dir", str(run_dir),
             "--no-progress", *WORKFLOW_FB, *(WORKFLOW_EXPLORATION if agent == "dvfb" else ()), *extra]
+
+
+# tiny_flags("fb") and the maze's schedule, one torch thread.
+FB_PHYSICS_FLAGS = [*tiny_flags("fb"), "--torch-threads", "1", "--update-every", "4", "--checkpoint-every", "1000"]
+
+
+def fb_physics_args(run_dir, frames: int, *extra: str) -> list[str]:
+    """``dvfb pretrain`` of FB on the maze recording physics (conftest's ``fb_maze_physics_run`` is
+    ``fb_physics_args(run_dir, 2000)``); a resume of that run is ``fb_physics_args(copy, N, "--resume")``."""
+    return ["pretrain", "--agent", "fb", "--domain", "point_mass_maze", "--frames", str(frames), "--seed-frames",
+            "500", "--run-dir", str(run_dir), "--replay.record-physics", "true", "--no-progress", *FB_PHYSICS_FLAGS,
+            *extra]
+
+
+def copy_run(run, into):
+    """A copy of ``run`` at ``into/<run's name>``, for a test that writes into a shared run (zero-shot
+    results, fine-tunings, analyses): the shared one stays as conftest made it."""
+    import shutil
+    from pathlib import Path
+
+    return Path(shutil.copytree(run, Path(into) / Path(run).name))
 
 
 # ---------------------------------------------------------------------------------------------
