@@ -138,6 +138,18 @@ def random_batch(n: int, seed: int = 0, *, obs_dim: int = OBS, action_dim: int =
     return Batch(obs, action, reward, discount, next_obs, future_obs, z)
 
 
+def skill_batch(n: int, skill, seed: int = 0, **kw):
+    """:func:`random_batch` of the skill methods' updates: a skill (a tensor, or ``skill(n, generator)``
+    drawn from the batch's generator) and the discount 0.99 ** 3 of their 3-step returns."""
+    return random_batch(n, seed, skill=skill, discount=0.99 ** 3, **kw)
+
+
+def per_row_discount_batch(n: int, seed: int, dtype, **kw):
+    """:func:`random_batch` in ``dtype`` with s'' and a discount of its own in every row, drawn in
+    [0.9, 1) (as an n-step replay's episode ends give)."""
+    return random_batch(n, seed, future=True, discount="random", dtype=dtype, **kw)
+
+
 def replayed_return(run, task: str, z, seed: int) -> float:
     """The return of one mean-action episode of ``run``'s model with the skill ``z`` (None for a
     single policy) in ``task``'s environment made with ``seed``, stepped here by hand: what a
