@@ -21,7 +21,7 @@ from dvfb.analysis.report import make_report
 from dvfb.cli import main
 from dvfb.runs import write_json_atomic
 
-from test_analysis import make_finetune_run, make_pretrain_run, md_row
+from tiny import make_finetune_run, make_pretrain_run, md_row
 
 WALKER = ("walker_stand", "walker_walk", "walker_run", "walker_flip")
 

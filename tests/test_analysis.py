@@ -1,9 +1,9 @@
 """Reports and analyses (dvfb.analysis): tables, curves, value and exploration analyses, videos.
 
 The report tests write synthetic run directories (real PretrainConfig/FinetuneRunConfig files,
-zero-shot results, curves) with known numbers and check the table cells. The end-to-end tests
-pre-train a tiny agent on the maze with the CLI and run the analyses with tiny budgets; the video
-tests render in subprocesses with OSMesa (software OpenGL) and with no OpenGL backend at all.
+zero-shot results, curves) with known numbers and check the table cells. The end-to-end tests run
+the analyses with tiny budgets on conftest's tiny DVFB maze run (on a copy where they write); the
+video tests render in subprocesses with OSMesa (software OpenGL) and with no OpenGL backend at all.
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ import json
 import math
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,54 +27,16 @@ from dvfb.analysis.report import make_report
 from dvfb.analysis.statistics import binned_spearman, quantile_bins, spearman
 from dvfb.protocols.dual_value import FinetuneConfig
 from dvfb.cli import main
-from dvfb.core.config import merge, save_json
 from dvfb.runs import write_json_atomic
 from dvfb.runs.presets import preset_config
-from dvfb.protocols import protocols_of
-from dvfb.runs.run_config import FinetuneRunConfig
 
-from test_workflows import FAST_INFERENCE, pretrain_args
+from tiny import FAST_INFERENCE, copy_run, make_finetune_run, make_pretrain_run, md_row, run_cli
 
 MAZE_TASK = "point_mass_maze_reach_top_left"
 
 
 # ---------------------------------------------------------------------------------------------
-# synthetic run directories
-
-
-def make_pretrain_run(path: Path, agent: str = "dvfb", domain: str = "walker", seed: int = 0,
-                      use_ce: bool = True, zeroshot: dict[str, float] | None = None,
-                      snapshot_frames: int = 100_000) -> Path:
-    config = preset_config("small", agent=agent, domain=domain, seed=seed)
-    if not use_ce:
-        config = merge(config, {"exploration": {"use_ce": False}})
-    path.mkdir(parents=True)
-    save_json(config, path / "config.json")
-    for task, value in (zeroshot or {}).items():
-        write_json_atomic(path / "zeroshot" / f"{task}.json", {
-            "task": task, "domain": domain, "agent": agent, "preset": "small", "pretrain_seed": seed,
-            "seed": seed, "snapshot_frames": snapshot_frames, "mean_return": value, "std_return": 0.0,
-            "returns": [value], "eval_episodes": 1, "z": [0.0] * 4})
-    return path
-
-
-def make_finetune_run(run: Path, task: str, points: list[tuple[int, float]], name: str | None = None,
-                      seed: int | None = None, finished: bool = True, **finetune) -> Path:
-    parent = json.loads((run / "config.json").read_text())
-    seed = parent["seed"] if seed is None else seed
-    zero_shot, finetuner = protocols_of(parent["agent"])
-    config = FinetuneRunConfig(
-        pretrain_run=str(run), agent=parent["agent"], domain=parent["domain"], task=task, snapshot=100_000, seed=seed,
-        protocol=finetuner.name, inference=zero_shot.config_cls(), finetune=FinetuneConfig(**finetune))
-    path = run / "finetune" / (name or task)
-    path.mkdir(parents=True)
-    save_json(config, path / "config.json")
-    write_json_atomic(path / "curve.json", {
-        "task": task, "domain": parent["domain"], "agent": parent["agent"], "seed": seed,
-        "curve": [{"frames": f, "mean_return": r, "std_return": 0.0, "returns": [r]} for f, r in points]})
-    if finished:
-        write_json_atomic(path / "finetune_summary.json", {"task": task, "frames": points[-1][0]})
-    return path
+# synthetic run directories (tiny.make_pretrain_run and make_finetune_run)
 
 
 @pytest.fixture
@@ -97,14 +58,6 @@ def walker_runs(tmp_path: Path) -> Path:
 def read_csv(path: Path) -> dict[str, dict[str, str]]:
     rows = csv.DictReader(io.StringIO(path.read_text()))
     return {f"{r['domain']}/{r['task']}": r for r in rows}
-
-
-def md_row(markdown: str, domain: str, task: str) -> list[str]:
-    for line in markdown.splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) > 2 and cells[0] == domain and cells[1].strip("*") == task:
-            return cells[2:]
-    raise AssertionError(f"no row {domain}/{task} in\n{markdown}")
 
 
 def md_columns(markdown: str) -> list[str]:
@@ -346,20 +299,14 @@ def test_coverage_counts_occupied_cells():
 # end to end on a tiny pre-trained agent
 
 
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory) -> Path:
-    run_dir = tmp_path_factory.mktemp("analysis") / "dvfb_maze"
-    assert main(pretrain_args(run_dir, 2000)) == 0
-    return run_dir
-
-
 @pytest.mark.slow
-def test_analyze_value_end_to_end(tiny_run: Path, capsys):
-    args = ["analyze-value", str(tiny_run), "--task", MAZE_TASK, "--skills", "6", "--episodes-per-skill", "1",
+def test_analyze_value_end_to_end(dvfb_maze_run: Path, tmp_path: Path, capsys):
+    run = copy_run(dvfb_maze_run, tmp_path)  # the analyses write into the run: on a copy
+    args = ["analyze-value", str(run), "--task", MAZE_TASK, "--skills", "6", "--episodes-per-skill", "1",
             "--bins", "2", "--max-steps", "150", *FAST_INFERENCE]
     assert main(args) == 0
     assert "Spearman" in capsys.readouterr().out
-    out = tiny_run / "analysis"
+    out = run / "analysis"
     summary = json.loads((out / f"value_{MAZE_TASK}.json").read_text())
     assert summary["trajectories"] == 6 and summary["skills"] == 6 and len(summary["bins"]) == 2
     assert summary["spearman"] is None or -1.0 <= summary["spearman"] <= 1.0
@@ -371,14 +318,15 @@ def test_analyze_value_end_to_end(tiny_run: Path, capsys):
     assert "--overwrite" in capsys.readouterr().err
 
 
-def test_analyze_exploration_end_to_end(tiny_run: Path, capsys, monkeypatch):
+def test_analyze_exploration_end_to_end(dvfb_maze_run: Path, tmp_path: Path, capsys, monkeypatch):
+    run = copy_run(dvfb_maze_run, tmp_path)  # the analyses write into the run: on a copy
     monkeypatch.setenv("DVFB_PROGRESS_SECONDS", "0")  # off a terminal: a progress line at every step
-    assert main(["analyze-exploration", str(tiny_run), "--skills", "3", "--repeats", "2", "--steps", "100"]) == 0
+    assert main(["analyze-exploration", str(run), "--skills", "3", "--repeats", "2", "--steps", "100"]) == 0
     captured = capsys.readouterr()
     assert "coverage" in captured.out
     progress = [line for line in captured.err.splitlines() if line.startswith("[analyze-exploration] ")]
     assert len(progress) == 600 and progress[-1].startswith("[analyze-exploration] 600/600 steps (100%)")
-    out = tiny_run / "analysis"
+    out = run / "analysis"
     summary = json.loads((out / "exploration.json").read_text())
     assert summary["actions"] == "rollout" and summary["cell_size"] == 0.02
     assert summary["coordinates"] == ["x", "y"]
@@ -398,17 +346,16 @@ def test_analyze_exploration_end_to_end(tiny_run: Path, capsys, monkeypatch):
 def run_dvfb(args: list[str], **env: str) -> subprocess.CompletedProcess:
     environment = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
     environment.update(env)
-    return subprocess.run([sys.executable, "-m", "dvfb", *args], capture_output=True, text=True, env=environment,
-                          timeout=300)
+    return run_cli(*args, env=environment, timeout=300)
 
 
 @pytest.mark.slow
-def test_video_renders_with_osmesa(tiny_run: Path, tmp_path: Path):
+def test_video_renders_with_osmesa(dvfb_maze_run: Path, tmp_path: Path):
     if ctypes.util.find_library("OSMesa") is None:
         pytest.fail("libOSMesa (software OpenGL) is not installed, so rendering cannot be tested: install it "
                     "with `apt-get install -y libosmesa6` (Debian/Ubuntu), or run `make test` as root, which does")
     gif = tmp_path / "maze.gif"
-    result = run_dvfb(["video", str(tiny_run), "--task", MAZE_TASK, "--out", str(gif), "--max-steps", "30",
+    result = run_dvfb(["video", str(dvfb_maze_run), "--task", MAZE_TASK, "--out", str(gif), "--max-steps", "30",
                        "--frame-skip", "3", "--height", "96", "--width", "128", *FAST_INFERENCE],
                       MUJOCO_GL="osmesa", PYOPENGL_PLATFORM="osmesa")
     assert result.returncode == 0, result.stderr
@@ -424,8 +371,8 @@ def test_video_renders_with_osmesa(tiny_run: Path, tmp_path: Path):
 
 @pytest.mark.parametrize("backend", ["disable", "no-such-backend"])
 @pytest.mark.slow
-def test_video_without_gl_backend_says_how_to_enable_one(tiny_run: Path, tmp_path: Path, backend: str):
-    result = run_dvfb(["video", str(tiny_run), "--task", MAZE_TASK, "--out", str(tmp_path / "v.gif")],
+def test_video_without_gl_backend_says_how_to_enable_one(dvfb_maze_run: Path, tmp_path: Path, backend: str):
+    result = run_dvfb(["video", str(dvfb_maze_run), "--task", MAZE_TASK, "--out", str(tmp_path / "v.gif")],
                       MUJOCO_GL=backend)
     assert result.returncode == 2, result.stderr
     err = result.stderr
@@ -434,17 +381,17 @@ def test_video_without_gl_backend_says_how_to_enable_one(tiny_run: Path, tmp_pat
     assert not (tmp_path / "v.gif").exists()
 
 
-def test_video_format_checks(tiny_run: Path, tmp_path: Path, capsys):
-    assert main(["video", str(tiny_run), "--task", MAZE_TASK, "--out", str(tmp_path / "v.avi")]) == 2
+def test_video_format_checks(dvfb_maze_run: Path, tmp_path: Path, capsys):
+    assert main(["video", str(dvfb_maze_run), "--task", MAZE_TASK, "--out", str(tmp_path / "v.avi")]) == 2
     assert ".gif" in capsys.readouterr().err
     if importlib.util.find_spec("imageio_ffmpeg") is None:
         # MP4 needs imageio-ffmpeg: a clear message before any work, not a traceback.
-        assert main(["video", str(tiny_run), "--task", MAZE_TASK, "--out", str(tmp_path / "v.mp4")]) == 2
+        assert main(["video", str(dvfb_maze_run), "--task", MAZE_TASK, "--out", str(tmp_path / "v.mp4")]) == 2
         err = capsys.readouterr().err
         assert "imageio-ffmpeg" in err and ".gif" in err
     else:
         mp4 = tmp_path / "v.mp4"
-        result = run_dvfb(["video", str(tiny_run), "--task", MAZE_TASK, "--out", str(mp4), "--max-steps", "20",
+        result = run_dvfb(["video", str(dvfb_maze_run), "--task", MAZE_TASK, "--out", str(mp4), "--max-steps", "20",
                            *FAST_INFERENCE], MUJOCO_GL="osmesa", PYOPENGL_PLATFORM="osmesa")
         assert result.returncode == 0, result.stderr
         assert mp4.stat().st_size > 0

@@ -17,19 +17,16 @@ from dvfb.agents.ddpg import DDPGConfig
 from dvfb.agents.registry import get_spec
 from dvfb.nets import RunningMeanStd
 from dvfb.protocols.urlb import DDPGFinetuneConfig, DDPGFinetuner
-from dvfb.data import Batch
 from dvfb.rewards.cesd import CeSDReward, partitioned_apt_reward
-from tiny import random_batch
+from tiny import ACT, OBS, skill_batch
 
-OBS, ACT, K = 5, 3, 4
+K = 4
 TINY = dict(hidden_dim=32, critic_trunk_dim=16, critic_hidden_dim=32)
 
 
-def make_batch(n: int = 32, skills: int = K, seed: int = 0) -> Batch:
-    def one_hot_skills(n, generator):
-        return F_nn.one_hot(torch.randint(0, skills, (n,), generator=generator), skills).float()
-
-    return random_batch(n, seed, obs_dim=OBS, action_dim=ACT, step=None, skill=one_hot_skills, discount=0.99 ** 3)
+def one_hot_skills(n: int, generator: torch.Generator) -> torch.Tensor:
+    """One-hot skills of K, drawn from a batch's generator (tiny.skill_batch)."""
+    return F_nn.one_hot(torch.randint(0, K, (n,), generator=generator), K).float()
 
 
 def tiny_core(skills: int = K) -> CeSDCore:
@@ -138,7 +135,7 @@ def test_reward_clusters_and_losses_never_read_values_back_to_the_host():
     """Dynamo traces them as single graphs: an .item(), a bool(tensor) or a Python branch on a
     tensor value would be a graph break, an error with fullgraph (a sync on a GPU)."""
     module = tiny_reward()
-    batch = make_batch(32)
+    batch = skill_batch(32, one_hot_skills, step=None)
     reward, cluster, _, _ = torch.compile(module.score_and_assign, fullgraph=True, backend="eager")(batch)
     assert reward.shape == (32, 1) and cluster.shape == (32,)
     core = tiny_core()
@@ -207,7 +204,7 @@ def hand_sinkhorn(scores: torch.Tensor, iters: int) -> torch.Tensor:
 
 def test_prototype_loss_by_hand_and_only_the_prototypes_learn():
     module = tiny_reward(proto_temperature=0.1, sinkhorn_iters=6)
-    batch = make_batch(12)
+    batch = skill_batch(12, one_hot_skills, step=None)
     with torch.no_grad():
         module.protos.weight.mul_(1.7)
     loss = module.prototype_loss(batch)
@@ -298,7 +295,7 @@ def hand_critic_loss(core, batch, mask, seed):
 
 def test_masked_and_unmasked_critic_loss_by_hand():
     core = tiny_core()
-    batch = make_batch(12)
+    batch = skill_batch(12, one_hot_skills, step=None)
     cluster = planted_clusters([5, 0, 4, 3])
     mask = torch.arange(K).unsqueeze(1) == cluster.unsqueeze(0)
     for m in (mask, None):
@@ -309,7 +306,7 @@ def test_masked_and_unmasked_critic_loss_by_hand():
 
 def test_actor_loss_uses_the_head_of_each_skill():
     core = tiny_core()
-    batch = make_batch(12)
+    batch = skill_batch(12, one_hot_skills, step=None)
     torch.manual_seed(4)
     loss = core.actor_loss(batch.obs, batch.z)
     torch.manual_seed(4)
@@ -337,7 +334,7 @@ def changed_heads(before, after):
 
 def test_update_without_mask_regresses_every_head_and_a_mask_only_its_clusters():
     core = tiny_core()
-    batch = make_batch(12)
+    batch = skill_batch(12, one_hot_skills, step=None)
     expected = hand_critic_loss(core, batch, None, 7)
     before = head_slices(core.critic)
     metrics = {}
@@ -380,7 +377,7 @@ def test_agent_update_changes_every_optimised_parameter():
     before = {n: p.detach().clone() for n, p in agent.named_parameters()}
     optimised = {id(p) for opt in agent.optimizers().values() for group in opt.param_groups for p in group["params"]}
     for seed in range(3):
-        metrics = agent.update(make_batch(32, seed=seed))
+        metrics = agent.update(skill_batch(32, one_hot_skills, seed=seed, step=None))
     assert {"nce_loss", "proto_loss", "critic_loss", "actor_loss", "reward", "scored_clusters"} <= set(metrics)
     assert all(isinstance(v, torch.Tensor) and v.dim() == 0 and torch.isfinite(v) for v in metrics.values())
     for name, p in agent.named_parameters():
@@ -393,7 +390,7 @@ def test_agent_update_changes_every_optimised_parameter():
 def test_agent_update_follows_cesds_order():
     """CIC step -> clusters and reward (with the updated g) -> critic -> actor -> prototypes -> EMA."""
     agent = tiny_agent()
-    batch = make_batch(32)
+    batch = skill_batch(32, one_hot_skills, step=None)
     manual = copy.deepcopy(agent)
     torch.manual_seed(11)
     metrics = agent.update(batch)
@@ -418,7 +415,7 @@ def test_agent_update_follows_cesds_order():
 def test_urlb_finetuner_rebuilds_the_ensemble_and_trains_every_head():
     agent = tiny_agent()
     for seed in range(2):
-        agent.update(make_batch(32, seed=seed))
+        agent.update(skill_batch(32, one_hot_skills, seed=seed, step=None))
     pretrained = {k: v.clone() for k, v in agent.core.critic.state_dict().items()}
     skill = agent.sample_skill(1)[0]
     finetuner = DDPGFinetuner(agent.model, skill, DDPGFinetuneConfig())
@@ -427,6 +424,6 @@ def test_urlb_finetuner_rebuilds_the_ensemble_and_trains_every_head():
     for key, value in critic.state_dict().items():
         assert torch.equal(value, pretrained[key]) == key.startswith("trunk."), key
     before = head_slices(critic)
-    metrics = finetuner.update(make_batch(32, seed=5))
+    metrics = finetuner.update(skill_batch(32, one_hot_skills, seed=5, step=None))
     assert torch.isfinite(metrics["critic_loss"]) and torch.isfinite(metrics["actor_loss"])
     assert changed_heads(before, head_slices(agent.core.critic)) == set(range(2 * K))

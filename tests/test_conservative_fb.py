@@ -10,7 +10,7 @@ from dvfb.agents import get_spec, make_agent
 from dvfb.agents.conservative_fb import ConservativeConfig, MCFBAgent, VCFBAgent
 from dvfb.core.errors import ConfigError
 from dvfb.data import Batch
-from tests.tiny import ACT, OBS, filled_replay, tiny_config, tiny_run_config
+from tiny import ACT, OBS, filled_replay, tiny_config, tiny_run_config
 
 N = 5
 

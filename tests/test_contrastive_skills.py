@@ -15,14 +15,9 @@ from dvfb.agents.ddpg import DDPGConfig
 from dvfb.data import Batch
 from dvfb.rewards.becl import BeCLReward, becl_contrastive_loss
 from dvfb.rewards.comsd import ComSDReward, diversity_reward, skill_weight
-from tiny import random_batch
+from tiny import ACT, OBS, skill_batch
 
-OBS, ACT, H, B = 5, 3, 32, 32
-
-
-def make_batch(n: int, z: torch.Tensor, seed: int = 0) -> Batch:
-    return random_batch(n, seed, obs_dim=OBS, action_dim=ACT, step=None, skill=z, reward="zeros",
-                        discount=0.99 ** 3)
+H, B = 32, 32
 
 
 def one_hot_skills(n: int, dim: int, seed: int = 0) -> torch.Tensor:
@@ -100,7 +95,7 @@ def test_becl_reward_module_update_and_score_by_hand():
     module.make_optimizer(config.lr, fused=False)
     assert [m.out_features for m in module.net.embed if isinstance(m, torch.nn.Linear)] == [H, H, 16]
     assert [m.out_features for m in module.net.project_head if isinstance(m, torch.nn.Linear)] == [H, 16]
-    batch = make_batch(B, one_hot_skills(B, 16), seed=5)
+    batch = skill_batch(B, one_hot_skills(B, 16), seed=5, step=None, reward="zeros")
     labels = batch.z.argmax(-1).tolist()
     with torch.no_grad():
         # f is applied to s_{t+n} (batch.next_obs), never to s_t.
@@ -140,7 +135,7 @@ def test_becl_agent_update_runs_three_contrastive_steps_on_fresh_batches():
     assert all(torch.equal(p, q) for p, q in zip(agent.intrinsic.parameters(), twin.intrinsic.parameters()))
     before = {n: p.detach().clone() for n, p in agent.named_parameters()}
     for i in range(3):
-        batch = make_batch(3 * B, one_hot_skills(3 * B, 16, seed=10 + i), seed=20 + i)
+        batch = skill_batch(3 * B, one_hot_skills(3 * B, 16, seed=10 + i), seed=20 + i, step=None, reward="zeros")
         metrics = agent.update(batch)
         parts = batch.chunk(3)
         for part in parts:
@@ -228,7 +223,7 @@ def test_comsd_reward_module_update_and_score_by_hand(mapping):
     config = ComSDConfig(hidden_dim=H, knn_k=4, weight_mapping=mapping)
     module = ComSDReward(OBS, 64, config)
     module.make_optimizer(config.lr, fused=False)
-    batch = make_batch(B, box_skills(B, 64, seed=8), seed=9)
+    batch = skill_batch(B, box_skills(B, 64, seed=8), seed=9, step=None, reward="zeros")
     with torch.no_grad():
         _, key, query = encodings(module, batch)
         nce_before = nce_by_hand(query, key, 0.5)
@@ -276,7 +271,7 @@ def test_comsd_agent_update():
     assert agent.replay_needs().batch_size == B and agent.replay_needs().nstep == 3
     before = {n: p.detach().clone() for n, p in agent.named_parameters()}
     for i in range(3):
-        metrics = agent.update(make_batch(B, box_skills(B, 64, seed=30 + i), seed=40 + i))
+        metrics = agent.update(skill_batch(B, box_skills(B, 64, seed=30 + i), seed=40 + i, step=None, reward="zeros"))
     assert {"nce_loss", "exploration_reward", "diversity_reward", "critic_loss", "actor_loss", "reward"} <= set(metrics)
     assert all(isinstance(v, torch.Tensor) and v.dim() == 0 and torch.isfinite(v) for v in metrics.values())
     assert {int(s["step"]) for s in agent.intrinsic.optimizer.state.values()} == {3}

@@ -14,7 +14,6 @@ from dvfb.agents.fb import BACKWARD_INPUTS, FBAgent, FBConfig
 from dvfb.rewards.contrastive import contrastive_entropy_reward, nce_loss
 from dvfb.rewards.rnd import RNDReward
 from dvfb.nets import sample_z_prior, training_action
-from dvfb.data import Batch
 from tiny import ACT, D, H, OBS, random_batch, tiny_exploration
 from tiny import tiny_config as shared_tiny_config
 
@@ -24,10 +23,6 @@ TAU = 0.01
 
 def tiny_config(**overrides) -> FBConfig:
     return shared_tiny_config(**{"tau": TAU, **overrides})
-
-
-def make_batch(n: int, seed: int = 0, future: bool = True) -> Batch:
-    return random_batch(n, seed, future=future)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -250,7 +245,7 @@ def test_exploration_critic_loss_matches_td_reference():
     with torch.no_grad():
         for p in agent.exploration_critic_target.parameters():
             p.add_(0.1 * torch.randn_like(p))
-    batch = make_batch(32)
+    batch = random_batch(32, future=True)
     z = sample_z_prior(32, D)
     next_action = training_action(agent.actor(batch.next_obs, z), 0.2, 0.3).detach()
     reward = torch.rand(32, 1)
@@ -270,7 +265,7 @@ def test_exploration_critic_loss_matches_td_reference():
 def test_intrinsic_reward_uses_the_just_updated_modules(rnd_input):
     torch.manual_seed(0)
     agent = DVFBAgent(OBS, ACT, tiny_config(), tiny_exploration(rnd_input=rnd_input, beta=0.7))
-    batch = make_batch(32)
+    batch = random_batch(32, future=True)
     with torch.no_grad():
         labels = agent.backward_map(batch.next_obs)
     metrics = {}
@@ -293,12 +288,12 @@ def test_dvfb_without_ce_has_no_contrastive_module():
     assert agent.contrastive is None
     assert "contrastive_optimizer" not in agent.optimizers()
     assert not any(name.startswith("contrastive") for name, _ in agent.named_parameters())
-    metrics = agent.update(make_batch(32))
+    metrics = agent.update(random_batch(32, future=True))
     assert "nce_loss" not in metrics and "ce_reward" not in metrics
     torch.testing.assert_close(metrics["intrinsic_reward"], metrics["rnd_reward"])
     # beta = 0 keeps the module (trained) but adds no CE term.
     agent0 = DVFBAgent(OBS, ACT, tiny_config(), tiny_exploration(beta=0.0))
-    metrics0 = agent0.update(make_batch(32))
+    metrics0 = agent0.update(random_batch(32, future=True))
     assert "nce_loss" in metrics0 and "ce_reward" not in metrics0
     torch.testing.assert_close(metrics0["intrinsic_reward"], metrics0["rnd_reward"])
 
@@ -314,7 +309,7 @@ def test_update_runs_with_finite_losses_in_every_backward_mode(mode, agent_cls):
     cfg = tiny_config(backward_input=mode)
     agent = FBAgent(OBS, ACT, cfg) if agent_cls == "fb" else DVFBAgent(OBS, ACT, cfg, tiny_exploration())
     for step in range(2):
-        metrics = agent.update(make_batch(32, seed=step))
+        metrics = agent.update(random_batch(32, seed=step, future=True))
         assert {"fb_loss", "fb_total", "ortho_loss", "fb_q_loss", "actor_loss"} <= set(metrics)
         if agent_cls == "dvfb":
             assert {"exploration_critic_loss", "rnd_loss", "nce_loss", "intrinsic_reward"} <= set(metrics)
@@ -323,9 +318,9 @@ def test_update_runs_with_finite_losses_in_every_backward_mode(mode, agent_cls):
             assert not value.requires_grad
     if mode == "code_exact":
         with pytest.raises(ValueError, match="code_exact"):
-            agent.update(make_batch(32, future=False))
+            agent.update(random_batch(32))
     else:
-        agent.update(make_batch(32, future=False))  # s'' is not needed
+        agent.update(random_batch(32))  # s'' is not needed
 
 
 # ---------------------------------------------------------------------------------------------
@@ -378,7 +373,7 @@ def test_dvfb_update_gradient_isolation_and_ema(mode):
     for update in range(2):
         log.clear()
         start = _snapshot(agent)
-        agent.update(make_batch(32, seed=update))
+        agent.update(random_batch(32, seed=update, future=True))
         end = _snapshot(agent)
         names = [entry[0] for entry in log]
         # §7.2 order: RND, contrastive, Q_P, FB, actor.
@@ -437,7 +432,7 @@ def test_fb_agent_update_steps_only_fb_then_actor():
     torch.manual_seed(0)
     agent = FBAgent(OBS, ACT, tiny_config())
     log = _instrument(agent)
-    agent.update(make_batch(32))
+    agent.update(random_batch(32, future=True))
     assert [entry[0] for entry in log] == ["fb_optimizer", "actor_optimizer"]
     for opt_name, before, after, _ in log:
         changed = _changed(before, after)
@@ -448,7 +443,7 @@ def test_rnd_target_unchanged_over_many_updates_and_predictor_learns():
     torch.manual_seed(0)
     agent = DVFBAgent(OBS, ACT, tiny_config(lr=1e-3), tiny_exploration())
     target = {n: p.clone() for n, p in agent.rnd.networks.target.named_parameters()}
-    batch = make_batch(64, seed=3)
+    batch = random_batch(64, seed=3, future=True)
     losses = [agent.update(batch)["rnd_loss"].item() for _ in range(30)]
     for n, p in agent.rnd.networks.target.named_parameters():
         assert torch.equal(p, target[n])

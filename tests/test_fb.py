@@ -31,10 +31,6 @@ from tiny import ACT, D, OBS, random_batch, tiny_config, tiny_exploration
 F64 = torch.float64
 
 
-def make_batch(n: int, seed: int = 0, discount=None) -> Batch:
-    return random_batch(n, seed, future=True, discount=0.99 if discount is None else discount)
-
-
 def perturb_(module, scale=0.05, seed=0):
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
@@ -189,7 +185,7 @@ def test_zero_rewards_fall_back():
     # The agent replaces a zero z by a prior draw on the sphere.
     torch.manual_seed(0)
     agent = FBAgent(OBS, ACT, tiny_config())
-    batch = make_batch(64)
+    batch = random_batch(64, future=True)
     z, info = agent.model.infer_skill(batch.obs, batch.next_obs, torch.zeros(64), InferenceConfig(reward_quantile=0.99))
     assert info["fallback"] == "prior"
     torch.testing.assert_close(z.norm(), torch.tensor(math.sqrt(D)), atol=1e-5, rtol=0)
@@ -199,7 +195,7 @@ def test_zero_rewards_fall_back():
 def test_agent_infer_z_uses_label_features_and_is_on_the_sphere(mode):
     torch.manual_seed(0)
     agent = FBAgent(OBS, ACT, tiny_config(backward_input=mode))
-    batch = make_batch(500, seed=1)
+    batch = random_batch(500, seed=1, future=True)
     reward = batch.next_obs[:, 0]
     z, info = agent.model.infer_skill(batch.obs, batch.next_obs, reward, InferenceConfig(reward_quantile=0.9))
     torch.testing.assert_close(z.norm(), torch.tensor(math.sqrt(D)), atol=1e-5, rtol=0)
@@ -366,7 +362,7 @@ def test_fb_losses_match_reference_computation(mode):
     perturb_(agent.backward_target, seed=2)
     n = 48
     discount = torch.linspace(0.5, 1.0, n).unsqueeze(-1)  # per-row D: must scale row i of TM
-    batch = make_batch(n, seed=1, discount=discount)
+    batch = random_batch(n, seed=1, future=True, discount=discount)
     z, next_action, backward, target_input = fb_inputs(agent, batch)
     losses = agent.fb_losses(batch, z, next_action, backward, target_input)
 
@@ -408,7 +404,7 @@ def test_fb_losses_match_reference_computation(mode):
 def test_q_loss_flag_removes_the_auxiliary_loss():
     torch.manual_seed(0)
     agent = FBAgent(OBS, ACT, tiny_config(q_loss=False))
-    batch = make_batch(32)
+    batch = random_batch(32, future=True)
     losses = agent.fb_losses(batch, *fb_inputs(agent, batch))
     assert "fb_q_loss" not in losses
     torch.testing.assert_close(losses["fb_total"], losses["fb_loss"] + losses["ortho_loss"])
@@ -430,7 +426,7 @@ def test_twin_head_reduction_to_single_head_loss():
     _copy_head(agent.forward_map.heads)
     _copy_head(agent.forward_target.heads)
     n = 40
-    batch = make_batch(n, seed=2)
+    batch = random_batch(n, seed=2, future=True)
     z, next_action, backward, target_input = fb_inputs(agent, batch)
     with torch.no_grad():
         fwd = agent.forward_map(batch.obs, batch.action, z)
@@ -459,7 +455,7 @@ def test_orthonormality_loss_of_orthogonal_rows_is_minus_2d():
     torch.manual_seed(0)
     agent = FBAgent(OBS, ACT, tiny_config(q_loss=False))
     for n in (2, 5, D):
-        batch = make_batch(n, seed=n)
+        batch = random_batch(n, seed=n, future=True)
         z, next_action, _, target_input = fb_inputs(agent, batch)
         q, _ = torch.linalg.qr(torch.randn(D, n))
         rows = math.sqrt(D) * q.T  # n <= d mutually orthogonal rows of norm sqrt(d)
@@ -472,7 +468,7 @@ def test_orthonormality_loss_is_unbiased_for_frobenius_distance():
     torch.manual_seed(0)
     agent = FBAgent(OBS, ACT, tiny_config(q_loss=False))
     n, reps = 128, 100
-    batch = make_batch(n, seed=9)
+    batch = random_batch(n, seed=9, future=True)
     z, next_action, _, target_input = fb_inputs(agent, batch)
     g = torch.Generator().manual_seed(10)
     a = torch.randn(D, D, generator=g) / math.sqrt(D)

@@ -12,8 +12,7 @@ from scipy import stats
 
 from dvfb.agents import make_agent
 from dvfb.agents.fbee import choose_most_uncertain, ensemble_uncertainty
-from dvfb.data import Batch
-from tests.tiny import ACT, OBS, random_batch, tiny_run_config
+from tiny import ACT, OBS, random_batch, tiny_run_config
 
 
 def _agents(ensemble: int = 3):
@@ -23,10 +22,6 @@ def _agents(ensemble: int = 3):
     config = merge(config, {"fbee": {"ensemble": ensemble}})
     torch.manual_seed(0)
     return config, make_agent("fbee", OBS, ACT, config)
-
-
-def _batch(n: int = 32) -> Batch:
-    return random_batch(n, seed=3)
 
 
 def test_hand_scores_of_both_uncertainties():
@@ -99,7 +94,7 @@ def test_ensemble_loss_is_the_mean_of_member_losses_and_fb_loss_with_identical_m
             mine.copy_(theirs.unsqueeze(0).expand_as(mine))
         for name in ("backward_map", "backward_target", "actor"):
             getattr(agent, name).load_state_dict(getattr(fb, name).state_dict())
-    batch = _batch()
+    batch = random_batch(32, seed=3)
     z = fb.sample_skill(32)
     next_action = torch.rand(32, ACT) * 2 - 1
     ours = agent.fb_losses(batch, z, next_action, agent.backward_map(batch.next_obs), batch.next_obs)
@@ -110,7 +105,7 @@ def test_ensemble_loss_is_the_mean_of_member_losses_and_fb_loss_with_identical_m
 
 def test_members_train_independently_and_b_learns_from_all():
     _, agent = _agents()
-    batch = _batch()
+    batch = random_batch(32, seed=3)
     z = agent.sample_skill(32)
     next_action = torch.rand(32, ACT) * 2 - 1
 

@@ -40,10 +40,6 @@ def make_agent(kind="dvfb", **overrides):
                      ExplorationConfig(rnd_rep_dim=16, contrastive_hidden_dim=32, ce_k=4))
 
 
-def make_batch(n: int, seed: int = 0, reward=None) -> Batch:
-    return random_batch(n, seed, reward="positive" if reward is None else reward)
-
-
 def constant_batch(n: int, reward: float, dtype=torch.float32) -> Batch:
     """n copies of one transition: B_i = b for every row."""
     g = torch.Generator().manual_seed(1)
@@ -116,7 +112,7 @@ def test_mapping_matches_reference_on_a_random_batch():
     finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig())
     rms_fb, rms_t = RunningMeanStd(), RunningMeanStd()
     for seed in range(3):
-        batch = make_batch(64, seed=seed)
+        batch = random_batch(64, seed=seed, reward="positive")
         mapped = finetuner.mapped_reward(batch, {})
         with torch.no_grad():
             b = agent.backward_map(batch.next_obs).double()  # state mode: B(s')
@@ -134,8 +130,8 @@ def test_mapping_is_invariant_to_task_reward_scale(k):
     base = DualValueFinetuner(agent.model, z, FinetuneConfig())
     scaled = DualValueFinetuner(agent.model, z, FinetuneConfig())
     for seed in range(4):
-        batch = make_batch(64, seed=seed)
-        batch_k = make_batch(64, seed=seed, reward=k * batch.reward)
+        batch = random_batch(64, seed=seed, reward="positive")
+        batch_k = random_batch(64, seed=seed, reward=k * batch.reward)
         torch.testing.assert_close(scaled.mapped_reward(batch_k, {}), base.mapped_reward(batch, {}),
                                    rtol=1e-5, atol=1e-7)
 
@@ -145,7 +141,7 @@ def test_all_zero_task_rewards_map_to_zero():
     z = project_to_sphere(torch.randn(D, generator=torch.Generator().manual_seed(4)))
     finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig())
     for seed in range(3):
-        batch = make_batch(32, seed=seed, reward=torch.zeros(32, 1))
+        batch = random_batch(32, seed=seed, reward=torch.zeros(32, 1))
         mapped = finetuner.mapped_reward(batch, {})
         assert torch.all(mapped == 0) and torch.all(torch.isfinite(mapped))
         metrics = finetuner.update(batch)
@@ -168,7 +164,7 @@ def test_without_mapping_the_task_reward_is_used_unchanged():
     agent = make_agent()
     z = project_to_sphere(torch.randn(D, generator=torch.Generator().manual_seed(5)))
     finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig(reward_mapping=False))
-    batch = make_batch(32)
+    batch = random_batch(32, reward="positive")
     metrics = {}
     assert finetuner.mapped_reward(batch, metrics) is batch.reward
     assert finetuner.task_reward_stats.count.item() == pytest.approx(1e-4)
@@ -188,8 +184,8 @@ def _params(module):
 def test_finetuning_freezes_f_b_and_z(kind):
     agent = make_agent(kind)
     for seed in range(2):  # a little pre-training first, so nothing is at its initial value
-        agent.update(make_batch(32, seed=10 + seed))
-    batch = make_batch(64, seed=0)
+        agent.update(random_batch(32, seed=10 + seed, reward="positive"))
+    batch = random_batch(64, seed=0, reward="positive")
     z, _ = agent.model.infer_skill(batch.obs, batch.next_obs, batch.reward[:, 0], InferenceConfig(reward_quantile=None))
     f0, b0, actor0 = _params(agent.forward_map), _params(agent.backward_map), _params(agent.actor)
     explore0 = _params(agent.exploration_critic) if kind == "dvfb" else None
@@ -209,7 +205,7 @@ def test_finetuning_freezes_f_b_and_z(kind):
         assert torch.equal(p, qf0[n]) and not p.requires_grad
     z_before = finetuner.z.clone()
     for seed in range(4):
-        metrics = finetuner.update(make_batch(64, seed=seed))
+        metrics = finetuner.update(random_batch(64, seed=seed, reward="positive"))
         assert all(torch.isfinite(v).all() for v in metrics.values())
     for n, p in agent.forward_map.named_parameters():
         assert torch.equal(p, f0[n]), n
@@ -260,7 +256,7 @@ def test_update_matches_reference_td_target_and_actor_objective(variant):
     with torch.no_grad():  # a target different from the online critic
         for p in finetuner.task_critic_target.parameters():
             p.add_(0.05 * torch.randn_like(p))
-    batch = make_batch(48, seed=7)
+    batch = random_batch(48, seed=7, reward="positive")
     actor0 = copy.deepcopy(agent.actor)
     critic0, target0 = copy.deepcopy(finetuner.task_critic), copy.deepcopy(finetuner.task_critic_target)
     captured = {}
@@ -322,7 +318,7 @@ def test_adaptive_eta_runs():
     finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig(eta_mode="adaptive", reward_mapping=False))
     actor0 = _params(agent.actor)
     for seed in range(5):
-        metrics = finetuner.update(make_batch(32, seed=seed))
+        metrics = finetuner.update(random_batch(32, seed=seed, reward="positive"))
         assert all(torch.isfinite(v).all() for v in metrics.values())
         assert "skill_value" in metrics
     assert any(not torch.equal(p, actor0[n]) for n, p in agent.actor.named_parameters())
@@ -333,7 +329,7 @@ def test_training_state_round_trip():
     z = project_to_sphere(torch.randn(D, generator=torch.Generator().manual_seed(9)))
     finetuner = DualValueFinetuner(agent.model, z, FinetuneConfig())
     for seed in range(2):
-        finetuner.update(make_batch(32, seed=seed))
+        finetuner.update(random_batch(32, seed=seed, reward="positive"))
     state = copy.deepcopy(finetuner.training_state())
     assert not any(k.startswith("agent.") for k in state["finetuner"])
     other_agent = make_agent()
@@ -345,4 +341,4 @@ def test_training_state_round_trip():
         assert torch.equal(p, q), n
     for p, q in zip(other_agent.actor.parameters(), agent.actor.parameters()):
         assert torch.equal(p, q)
-    assert math.isfinite(finetuner.update(make_batch(32, seed=5))["actor_loss"].item())
+    assert math.isfinite(finetuner.update(random_batch(32, seed=5, reward="positive"))["actor_loss"].item())

@@ -6,8 +6,6 @@ group resumes exactly; a member that goes non-finite stops alone; and bad groups
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
 import torch
@@ -20,8 +18,7 @@ from dvfb.data import Batch
 from dvfb.runs import RunDir, load_checkpoint, save_checkpoint
 from dvfb.workflows.finetune import finetune
 from dvfb.workflows.pretrain import pretrain
-from test_members import MEMBERS, NOT_BITWISE, _cast, _members
-from tiny import tiny_run_config
+from tiny import MEMBERS, NOT_BITWISE, cast_batch, member_agents, run_cli, tiny_run_config
 
 UPDATES = 3
 MAZE = "point_mass_maze_reach_top_left"
@@ -31,7 +28,7 @@ SEEDS = [0, 1]
 def _finetuners(name: str, dtype: torch.dtype):
     """Each member's fine-tuner and its twin's, built from the same global stream (a fresh critic's
     initialisation) on the same skill, and the members' replays."""
-    agents, twins, replays = _members(name, dtype)
+    agents, twins, replays = member_agents(name, dtype)
     config = tiny_run_config(name).finetune
     cls = finetuner_class(get_spec(name).finetuner)
     previous = torch.get_default_dtype()
@@ -61,7 +58,7 @@ def _run(name: str, dtype: torch.dtype):
         needs = twins[0].replay_needs()
         group_metrics, twin_metrics = [], []
         for u in range(UPDATES):
-            batches = [_cast(needs.sample(replay, torch.Generator().manual_seed(7 + k + 10 * u)), dtype)
+            batches = [cast_batch(needs.sample(replay, torch.Generator().manual_seed(7 + k + 10 * u)), dtype)
                        for k, replay in enumerate(replays)]
             group_metrics.append(group.update(Batch.stack(batches)))
             twin_metrics.append([twin.update(batch) for twin, batch in zip(twins, batches)])
@@ -208,10 +205,6 @@ def test_a_non_finite_member_stops_its_fine_tuning_alone(fb_group, capsys):
     assert json.loads((poisoned.path / "finetune_summary.json").read_text())["frames"] == 1000
 
 
-def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "dvfb", "finetune", *args], capture_output=True, text=True)
-
-
 @pytest.mark.slow
 def test_bad_group_fine_tunings_are_one_line_and_create_nothing(tmp_path, fb_group):
     aps = [tmp_path / f"aps_s{s}" for s in SEEDS]  # APS has a task regression
@@ -222,7 +215,7 @@ def test_bad_group_fine_tunings_are_one_line_and_create_nothing(tmp_path, fb_gro
         ([str(fb_group[0]), str(fb_group[0]), "--task", MAZE], "a run is listed twice"),
     ]
     for args, message in cases:
-        done = _cli(*args, "--name", "bad", "--no-progress")
+        done = run_cli("finetune", *args, "--name", "bad", "--no-progress")
         assert done.returncode != 0
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1 and message in lines[0], done.stderr

@@ -9,7 +9,6 @@ import dataclasses
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -20,7 +19,11 @@ from dvfb.core.errors import CheckpointError, ConfigError
 from dvfb.runs import RunDir, load_snapshot
 from dvfb.workflows.pretrain import pretrain
 from dvfb.workflows.processes import shares, threads_per_process
-from tiny import tiny_flags, tiny_run_config
+from tiny import start_cli, tiny_flags, tiny_run_config, tree_bytes
+
+# `dvfb pretrain` of FB on the maze (the processes' commands add seeds, run directory and frames).
+PRETRAIN = ["pretrain", "--agent", "fb", "--domain", "point_mass_maze", *tiny_flags("fb"), "--seed-frames", "500",
+            "--update-every", "4", "--replay-capacity", "4000", "--torch-threads", "1", "--log-every", "100"]
 
 
 def _modules(path, frames):
@@ -62,13 +65,6 @@ def test_a_split_group_trains_each_share_as_its_own_group(tmp_path):
     assert runs[2].config.processes == 2 and not (split[0] / ".lock").read_text().strip() == ""
 
 
-def _cli(*args):
-    return subprocess.Popen([sys.executable, "-m", "dvfb", "pretrain", "--agent", "fb", "--domain", "point_mass_maze",
-                             *tiny_flags("fb"), "--seed-frames", "500", "--update-every", "4",
-                             "--replay-capacity", "4000", "--torch-threads", "1", "--log-every", "100", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
 def _logged(path) -> bool:
     metrics = path / "metrics" / "train.jsonl"
     return metrics.is_file() and metrics.stat().st_size > 0
@@ -77,7 +73,7 @@ def _logged(path) -> bool:
 def _started_split(template: str, paths, flags) -> subprocess.Popen:
     """``dvfb pretrain`` of one member per path split over 2 processes, once every child is updating."""
     seeds = ",".join(str(k) for k in range(len(paths)))
-    proc = _cli("--seeds", seeds, "--run-dir", template, "--processes", "2", *flags)
+    proc = start_cli(*PRETRAIN, "--seeds", seeds, "--run-dir", template, "--processes", "2", *flags)
     deadline = time.monotonic() + 300
     while not all(_logged(p) for p in paths):
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
@@ -99,19 +95,15 @@ def test_sigterm_checkpoints_every_share_and_the_split_group_resumes_exactly(tmp
     for path in cut:
         assert list((path / "checkpoints").glob("resume_*.pt")), path
         assert not (path / "pretrain_summary.json").exists()
-    resumed = _cli("--seeds", "0,1,2", "--run-dir", template, "--processes", "2", *frames, "--resume")
+    resumed = start_cli(*PRETRAIN, "--seeds", "0,1,2", "--run-dir", template, "--processes", "2", *frames,
+                        "--resume")
     out, err = resumed.communicate(timeout=600)
     assert resumed.returncode == 0, err
-    whole = _cli("--seeds", "0,1,2", "--run-dir", str(tmp_path / "whole_s{seed}"), "--processes", "2", *frames)
+    whole = start_cli(*PRETRAIN, "--seeds", "0,1,2", "--run-dir", str(tmp_path / "whole_s{seed}"), "--processes",
+                      "2", *frames)
     out, err = whole.communicate(timeout=600)
     assert whole.returncode == 0, err
     _assert_same_snapshots(cut, [tmp_path / f"whole_s{s}" for s in (0, 1, 2)], 4000)
-
-
-def _tree(root):
-    """Every path under ``root`` and its bytes (a lock file's holder pid aside)."""
-    return {str(p.relative_to(root)): p.read_bytes() if p.is_file() and p.name != ".lock" else None
-            for p in sorted(root.rglob("*"))}
 
 
 def _split_pair(tmp_path):
@@ -128,23 +120,23 @@ def test_a_childs_error_is_the_commands_one_line_and_no_share_starts(tmp_path):
     config, paths = _split_pair(tmp_path)
     checkpoint = next((paths[1] / "checkpoints").glob("resume_*.pt"))
     checkpoint.write_bytes(b"not a checkpoint")  # a real file the child of seed 1 cannot read
-    before = _tree(tmp_path)
+    before = tree_bytes(tmp_path)
     with pytest.raises(CheckpointError) as failure:
         pretrain(dataclasses.replace(config, frames=1500), paths, seeds=[0, 1], resume=True, progress=False)
     message = str(failure.value)
     assert message.startswith("seeds 1: cannot resume ") and str(paths[1]) in message and "\n" not in message
     # Seed 0's share had read its checkpoint and waited: it stopped without writing, as a group does.
-    assert _tree(tmp_path) == before
+    assert tree_bytes(tmp_path) == before
 
 
 @pytest.mark.slow
 def test_shares_finished_and_unfinished_are_refused_together_and_change_nothing(tmp_path):
     config, paths = _split_pair(tmp_path)
     pretrain(dataclasses.replace(config, frames=1500), paths[0], resume=True, progress=False)  # seed 0 alone
-    before = _tree(tmp_path)
+    before = tree_bytes(tmp_path)
     with pytest.raises(ConfigError, match="some members of the group have finished and others not"):
         pretrain(dataclasses.replace(config, frames=1500), paths, seeds=[0, 1], resume=True, progress=False)
-    assert _tree(tmp_path) == before
+    assert tree_bytes(tmp_path) == before
 
 
 def _children(pid: int) -> list[int]:
@@ -220,10 +212,12 @@ def test_a_killed_share_stops_the_group_in_one_line_and_the_group_resumes_exactl
     # The other share stopped at once with a checkpoint, long before its end; nothing finished.
     assert not any((path / "pretrain_summary.json").exists() for path in cut)
     assert list((cut[0] / "checkpoints").glob("resume_*.pt"))
-    resumed = _cli("--seeds", "0,1", "--run-dir", template, "--processes", "2", *frames, "--resume")
+    resumed = start_cli(*PRETRAIN, "--seeds", "0,1", "--run-dir", template, "--processes", "2", *frames,
+                        "--resume")
     _out, err = resumed.communicate(timeout=600)
     assert resumed.returncode == 0, err
-    whole = _cli("--seeds", "0,1", "--run-dir", str(tmp_path / "whole_s{seed}"), "--processes", "2", *frames)
+    whole = start_cli(*PRETRAIN, "--seeds", "0,1", "--run-dir", str(tmp_path / "whole_s{seed}"), "--processes", "2",
+                      *frames)
     _out, err = whole.communicate(timeout=600)
     assert whole.returncode == 0, err
     _assert_same_snapshots(cut, [tmp_path / f"whole_s{s}" for s in (0, 1)], 4000)

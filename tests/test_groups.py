@@ -5,8 +5,6 @@ errors of a bad --seeds command."""
 from __future__ import annotations
 
 import dataclasses
-import subprocess
-import sys
 
 import pytest
 import torch
@@ -20,9 +18,11 @@ from dvfb.training.metric_windows import MetricWindow
 from dvfb.workflows.pretrain import pretrain
 from dvfb.runs.snapshots import load_model
 from dvfb.workflows.resources import open_run
-from tiny import tiny_run_config, tiny_flags
+from tiny import member_agents, run_cli, tiny_flags, tiny_run_config, tree_bytes
 
 SEEDS = [0, 1]
+# `dvfb pretrain` of FB on the maze, 600 frames unless a later --frames says otherwise.
+PRETRAIN = ["pretrain", "--agent", "fb", "--domain", "point_mass_maze", "--frames", "600", "--seed-frames", "500"]
 
 
 def _snapshot_modules(path, frames):
@@ -120,9 +120,7 @@ def test_a_non_finite_member_stops_alone(tmp_path, capsys):
 
 
 def test_group_window_and_drop_keep_the_healthy_members_exact():
-    from test_members import _members
-
-    agents, twins, replays = _members("fb", torch.float32)
+    agents, twins, replays = member_agents("fb", torch.float32)
     group = stack_agents(agents)
     with torch.no_grad():
         group.forward_map.heads.second_weight[1].fill_(float("nan"))
@@ -145,11 +143,6 @@ def test_group_window_and_drop_keep_the_healthy_members_exact():
     assert all(torch.isfinite(v).all() for v in metrics.values())
 
 
-def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "dvfb", "pretrain", "--agent", "fb", "--domain", "point_mass_maze",
-                           "--frames", "600", "--seed-frames", "500", *args], capture_output=True, text=True)
-
-
 @pytest.mark.parametrize("args, message", [
     (["--seeds", "0,1", "--run-dir", "{tmp}/plain"], "needs {seed} in it"),
     (["--seeds", "0,0", "--run-dir", "{tmp}/r_{seed}"], "lists a seed twice"),
@@ -157,7 +150,7 @@ def _cli(*args):
 ])
 @pytest.mark.slow
 def test_bad_seeds_are_one_line_and_create_nothing(tmp_path, args, message):
-    done = _cli(*[a.replace("{tmp}", str(tmp_path)) for a in args])
+    done = run_cli(*PRETRAIN, *[a.replace("{tmp}", str(tmp_path)) for a in args])
     assert done.returncode != 0
     # argparse's own type errors come after its usage lines; the error itself is one line.
     assert message in done.stderr.strip().splitlines()[-1], done.stderr
@@ -168,17 +161,10 @@ def test_bad_seeds_are_one_line_and_create_nothing(tmp_path, args, message):
 def test_a_group_refuses_an_existing_member_directory_before_creating_any(tmp_path):
     pretrain(tiny_run_config("fb", frames=600, seed=1), tmp_path / "r_1", progress=False)
     before = sorted(p.name for p in (tmp_path / "r_1").iterdir())
-    done = _cli("--seeds", "0,1", "--run-dir", str(tmp_path / "r_{seed}"))
+    done = run_cli(*PRETRAIN, "--seeds", "0,1", "--run-dir", str(tmp_path / "r_{seed}"))
     assert done.returncode != 0 and "already exists" in done.stderr
     assert not (tmp_path / "r_0").exists()
     assert sorted(p.name for p in (tmp_path / "r_1").iterdir()) == before
-
-
-def _tree(root):
-    """Every path under ``root`` and its bytes; a lock file's holder pid aside (taking the lock is
-    how a command looks at a run safely)."""
-    return {str(p.relative_to(root)): p.read_bytes() if p.is_file() and p.name != ".lock" else None
-            for p in sorted(root.rglob("*"))}
 
 
 @pytest.mark.slow
@@ -186,15 +172,16 @@ def test_a_group_resume_with_finished_and_unfinished_members_is_refused_and_chan
     template = str(tmp_path / "r_{seed}")
     tiny = [*tiny_flags("fb"), "--update-every", "4", "--replay-capacity", "2000", "--torch-threads", "1"]
     # Checkpoints come at episode ends: the maze's are every 1000 steps.
-    assert _cli("--seeds", "0,1", "--run-dir", template, "--frames", "1000", *tiny).returncode == 0
-    alone = _cli("--seed", "0", "--run-dir", str(tmp_path / "r_0"), "--frames", "2000", "--resume", *tiny)
+    assert run_cli(*PRETRAIN, "--seeds", "0,1", "--run-dir", template, "--frames", "1000", *tiny).returncode == 0
+    alone = run_cli(*PRETRAIN, "--seed", "0", "--run-dir", str(tmp_path / "r_0"), "--frames", "2000", "--resume",
+                    *tiny)
     assert alone.returncode == 0, alone.stderr
-    before = _tree(tmp_path)
-    done = _cli("--seeds", "0,1", "--run-dir", template, "--frames", "2000", "--resume", *tiny)
+    before = tree_bytes(tmp_path)
+    done = run_cli(*PRETRAIN, "--seeds", "0,1", "--run-dir", template, "--frames", "2000", "--resume", *tiny)
     assert done.returncode == 2
     assert done.stderr.strip().splitlines()[-1] == ("dvfb pretrain: error: some members of the group have finished "
                                                     "and others not: resume the others alone")
-    assert _tree(tmp_path) == before  # no TensorBoard file, no lock, no checkpoint
+    assert tree_bytes(tmp_path) == before  # no TensorBoard file, no lock, no checkpoint
 
 
 @pytest.mark.slow
@@ -209,8 +196,8 @@ def test_a_group_that_does_not_fit_is_refused_before_anything_is_built(tmp_path)
     obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
     per_transition = ReplayBuffer.estimate_nbytes(1_000_000, obs_dim, action_dim, 10, 1000) / 1_000_000
     capacity = int(0.6 * available / per_transition)
-    done = _cli("--seeds", "0,1", "--run-dir", str(tmp_path / "r_{seed}"), "--replay-capacity", str(capacity),
-                "--fb.z-dim", "10")
+    done = run_cli(*PRETRAIN, "--seeds", "0,1", "--run-dir", str(tmp_path / "r_{seed}"), "--replay-capacity",
+                   str(capacity), "--fb.z-dim", "10")
     assert done.returncode != 0
     last = done.stderr.strip().splitlines()[-1]
     assert "(2 members)" in last and "needs about" in last, done.stderr
@@ -228,9 +215,8 @@ def test_group_zeroshot_skip_existing_evaluates_only_the_members_without_a_resul
     first = (paths[0] / "zeroshot" / f"{task}.json").read_bytes()
 
     def cli(*extra):
-        return subprocess.run([sys.executable, "-m", "dvfb", "zeroshot", *map(str, paths), "--task", task,
-                               "--inference.eval-episodes", "1", "--no-progress", *extra],
-                              capture_output=True, text=True)
+        return run_cli("zeroshot", *map(str, paths), "--task", task, "--inference.eval-episodes", "1", "--no-progress",
+                       *extra)
 
     refused = cli()  # an existing result is an error: one line, nothing written
     assert refused.returncode != 0 and len(refused.stderr.strip().splitlines()) == 1

@@ -4,64 +4,19 @@ a float tolerance; and the stacking itself (states in, states out) is exact."""
 
 from __future__ import annotations
 
-import copy
-
 import pytest
 import torch
 
-from dvfb import envs
-from dvfb.agents import agent_names, make_agent
-from dvfb.core.config import merge
+from dvfb.agents import agent_names
 from dvfb.nets.members import MemberGenerators, member_training_state, stack_agents
 from dvfb.data import Batch
-from tiny import filled_replay, tiny_run_config
+from tiny import MEMBERS, NOT_BITWISE, cast_batch, member_agents
 
-MEMBERS = 3
 UPDATES = 3
 
 
-def _maze_dims():
-    env = envs.make("point_mass_maze_reach_top_left")
-    return env.observation_space.shape[0], env.action_space.shape[0]
-
-
-def _members(name: str, dtype: torch.dtype, batch_size: int | None = None):
-    """``MEMBERS`` agents built as separate runs with seeds 0, 1, 2 would build them, their replays,
-    and each member's twin (a separate agent with its own copy of the same stream)."""
-    obs_dim, action_dim = _maze_dims()
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(dtype)
-    try:
-        agents, twins, replays = [], [], []
-        for k in range(MEMBERS):
-            torch.manual_seed(100 + k)
-            config = tiny_run_config(name, seed=k)
-            if batch_size is not None:
-                config = merge(config, {s: {"batch_size": batch_size} for s in ("fb", "sf", "ddpg")
-                                        if hasattr(config, s)})
-            agent = make_agent(name, obs_dim, action_dim, config, "cpu")
-            agent.use_generator(torch.Generator().manual_seed(1000 + k))
-            replays.append(filled_replay(agent, seed=k))
-            twin = copy.deepcopy(agent)
-            twin.use_generator(torch.Generator().manual_seed(0))
-            twin.generator.set_state(agent.generator.get_state())
-            twin.use_generator(twin.generator)
-            agents.append(agent)
-            twins.append(twin)
-    finally:
-        torch.set_default_dtype(previous)
-    return agents, twins, replays
-
-
-def _cast(batch: Batch, dtype: torch.dtype) -> Batch:
-    def cast(x):
-        return None if x is None else x.to(dtype)
-    return Batch(cast(batch.obs), cast(batch.action), cast(batch.reward), cast(batch.discount), cast(batch.next_obs),
-                 cast(batch.future_obs), cast(batch.z), {k: cast(v) for k, v in batch.columns.items()})
-
-
 def _run(name: str, dtype: torch.dtype, batch_size: int | None = None):
-    agents, twins, replays = _members(name, dtype, batch_size)
+    agents, twins, replays = member_agents(name, dtype, batch_size)
     previous = torch.get_default_dtype()
     torch.set_default_dtype(dtype)
     try:
@@ -70,7 +25,7 @@ def _run(name: str, dtype: torch.dtype, batch_size: int | None = None):
         needs = group.replay_needs()
         group_metrics, twin_metrics = [], []
         for _ in range(UPDATES):
-            batches = [_cast(needs.sample(replay, twin_gen), dtype)
+            batches = [cast_batch(needs.sample(replay, twin_gen), dtype)
                        for replay, twin_gen in zip(replays, [torch.Generator().manual_seed(7 + k + 10 * _)
                                                              for k in range(MEMBERS)])]
             group_metrics.append(group.update(Batch.stack(batches)))
@@ -110,11 +65,8 @@ def test_group_member_equals_separate_agent_in_float64(name):
     _assert_close(*_run(name, torch.float64), rtol=1e-10, atol=1e-10)
 
 
-# SMM's discriminator bias rounds differently, by ~1e-10 after three updates, and on some CPUs one
-# APS feature bias by one ulp (docs/members.md).
-NOT_BITWISE = {"smm": 1e-9, "aps": 1e-7}
-# Adam's moments of a few ensemble heads (Disagreement, APS) differ in their last bit, without
-# changing any parameter.
+# NOT_BITWISE (tiny.py) holds SMM's and APS's float32 differences. Adam's moments of a few ensemble
+# heads (Disagreement, APS) differ in their last bit, without changing any parameter.
 MOMENT_RTOL = 1e-6
 
 
@@ -144,7 +96,7 @@ def test_stacked_networks_trace_as_one_graph_with_equal_outputs_and_gradients(na
     """The member path compiles without graph breaks (``fullgraph``; tracing only, the eager
     backend), as ``--perf.compile`` and the CUDA graphs of ``--perf.cuda-graphs`` need, and the
     traced networks give the eager outputs and parameter gradients."""
-    agents, _twins, replays = _members(name, torch.float32)
+    agents, _twins, replays = member_agents(name, torch.float32)
     group = stack_agents(agents)
     needs = group.replay_needs()
     batch = Batch.stack([needs.sample(r, torch.Generator().manual_seed(k)) for k, r in enumerate(replays)])

@@ -30,14 +30,7 @@ from dvfb.nets import (
     soft_update_,
     training_action,
 )
-from dvfb.data import Batch
 from tiny import ACT, D, E, H, OBS, random_batch, tiny_config
-
-
-
-
-def make_batch(n: int, seed: int = 0, obs_dim: int = OBS, action_dim: int = ACT) -> Batch:
-    return random_batch(n, seed, obs_dim=obs_dim, action_dim=action_dim, step=0.1, future=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -90,7 +83,7 @@ def test_twin_critic_input_order_is_s_z_a():
 def test_backward_norm_is_sqrt_d_in_every_input_mode(mode):
     torch.manual_seed(1)
     agent = FBAgent(OBS, ACT, tiny_config(backward_input=mode))
-    batch = make_batch(64)
+    batch = random_batch(64, step=0.1, future=True)
     # Scale the inputs over several orders of magnitude, and include a constant input.
     batch.obs[:8] *= 1e3
     batch.next_obs[8:16] *= 1e-3
@@ -148,7 +141,7 @@ def _goal_index(z_row, goals, atol=1e-5):
 def test_training_z_mixing_rows_are_goals_or_the_original_prior_draws(mode):
     torch.manual_seed(0)
     agent = FBAgent(OBS, ACT, tiny_config(backward_input=mode))
-    batch = make_batch(48, seed=3)
+    batch = random_batch(48, seed=3, step=0.1, future=True)
     n = 48
     with torch.no_grad():
         if mode == "state":
@@ -192,7 +185,7 @@ def test_training_z_mixing_rows_are_goals_or_the_original_prior_draws(mode):
 def test_training_z_mix_ratio(ratio):
     torch.manual_seed(0)
     agent = FBAgent(OBS, ACT, tiny_config(mix_ratio=ratio))
-    batch = make_batch(64, seed=5)
+    batch = random_batch(64, seed=5, step=0.1, future=True)
     with torch.no_grad():
         goals = project_to_sphere(agent.backward_map(batch.obs))
     replaced = 0

@@ -8,8 +8,6 @@ import hashlib
 import json
 import shutil
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -22,7 +20,7 @@ from dvfb.cli import main
 from dvfb.core.errors import ConfigError
 from dvfb.workflows.dataset_export import export_run
 from dvfb.runs import load_checkpoint, load_snapshot
-from tiny import tiny_flags
+from tiny import run_cli, start_cli, tiny_flags, tree_bytes
 
 TINY_FB = tiny_flags("fb")
 TINY_SF = [flag.replace("--fb.", "--sf.") for flag in TINY_FB]
@@ -30,15 +28,11 @@ COMMON = ["--domain", "point_mass_maze", "--log-every", "50", "--torch-threads",
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    """Two episodes of an FB maze run that recorded physics, exported."""
-    root = tmp_path_factory.mktemp("offline")
-    run = root / "source"
-    assert main(["pretrain", "--agent", "fb", *COMMON, "--seed-frames", "500", "--update-every", "4",
-                 "--checkpoint-every", "1000", "--frames", "2000", "--run-dir", str(run),
-                 "--replay.record-physics", "true", *TINY_FB]) == 0
-    export_run(run, root / "maze_data", progress=None)
-    return root / "maze_data"
+def dataset(fb_maze_physics_run: Path, tmp_path_factory) -> Path:
+    """The two episodes of the session's FB maze run that recorded physics (conftest.py), exported."""
+    out = tmp_path_factory.mktemp("offline") / "maze_data"
+    export_run(fb_maze_physics_run, out, progress=None)
+    return out
 
 
 def offline(run: Path, dataset: Path, agent: str, updates: int, *extra: str) -> int:
@@ -128,10 +122,6 @@ def test_bad_offline_input_is_one_line_and_creates_nothing(dataset: Path, tmp_pa
     assert not (online / "zeroshot").exists()
 
 
-def _tree(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
-
-
 def _reexport(dataset: Path, change) -> None:
     """Rewrite ``dataset`` in place as a re-export would: the same file names and shapes, other
     contents (``change`` maps an episode's arrays), a new dataset.json."""
@@ -160,7 +150,7 @@ def test_a_resume_or_an_offline_zero_shot_on_other_data_is_one_line_and_changes_
     capsys.readouterr()
     # Observations x 0.5 under the same names and shapes: not the data the run was made from.
     _reexport(data, lambda a: {**a, "observation": a["observation"] * 0.5})
-    before = _tree(run)
+    before = tree_bytes(run)
     task = "point_mass_maze_reach_top_right"
     for argv in (["pretrain", "--agent", "fb", *COMMON, "--dataset", str(data), "--frames", "200",
                   "--checkpoint-every", "100", "--run-dir", str(run), *TINY_FB, "--resume"],
@@ -168,7 +158,7 @@ def test_a_resume_or_an_offline_zero_shot_on_other_data_is_one_line_and_changes_
         assert main(argv) == 2, argv
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "other data" in err[0] and "episode_000000_1000.npz" in err[0], err
-        assert _tree(run) == before
+        assert tree_bytes(run) == before
     # A file changed behind dataset.json's back is named on every read, relabelling included.
     episode = data / "buffer" / "episode_000001_1000.npz"
     with np.load(episode) as file:
@@ -198,7 +188,7 @@ def test_a_dataset_with_an_episode_of_0_steps_is_refused_naming_the_file(dataset
     with pytest.raises(ConfigError, match="holds 0 steps") as exc:
         read_dataset(data)
     assert named in str(exc.value)
-    before = _tree(data)
+    before = tree_bytes(data)
     run, out = tmp_path / "never", tmp_path / "relabelled"
     for argv in (["pretrain", "--agent", "fb", *COMMON, "--dataset", str(data), "--frames", "100", "--run-dir",
                   str(run), *TINY_FB],
@@ -206,7 +196,7 @@ def test_a_dataset_with_an_episode_of_0_steps_is_refused_naming_the_file(dataset
         assert main(argv) == 2, argv
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and named in err[0] and "0 steps" in err[0], err
-    assert not run.exists() and not out.exists() and _tree(data) == before
+    assert not run.exists() and not out.exists() and tree_bytes(data) == before
 
 
 @pytest.mark.slow
@@ -217,8 +207,7 @@ def test_sigterm_and_resume_of_an_offline_run_write_the_same_records_and_learner
     args = ["pretrain", "--agent", "fb", *COMMON, "--dataset", str(dataset), "--frames", "1500",
             "--checkpoint-every", "500", *TINY_FB]
     assert main([*args, "--run-dir", str(full)]) == 0
-    command = [sys.executable, "-m", "dvfb", *args, "--run-dir", str(split)]
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = start_cli(*args, "--run-dir", str(split))
     metrics = split / "metrics" / "train.jsonl"
     deadline = time.monotonic() + 120
     while not (metrics.exists() and metrics.read_text().count("\n") >= 2) and process.poll() is None:
@@ -229,7 +218,7 @@ def test_sigterm_and_resume_of_an_offline_run_write_the_same_records_and_learner
     assert process.returncode == 128 + signal.SIGTERM, err
     step = load_checkpoint(split)["step"]
     assert 100 <= step < 1500  # inside a window of log_every 50 unless it lands on a multiple (2%)
-    resumed = subprocess.run([*command, "--resume"], capture_output=True, text=True)
+    resumed = run_cli(*args, "--run-dir", str(split), "--resume")
     assert resumed.returncode == 0, resumed.stderr
     records = lambda run: [{k: v for k, v in json.loads(x).items() if not k.startswith("fps")}  # noqa: E731
                            for x in (run / "metrics" / "train.jsonl").read_text().splitlines()]

@@ -30,7 +30,7 @@ from dvfb.protocols import protocols_of
 from dvfb.runs.run_config import FinetuneRunConfig
 from dvfb.sweep import runner, spec
 
-from test_analysis import make_finetune_run, make_pretrain_run
+from tiny import make_finetune_run, make_pretrain_run
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_SWEEPS = sorted((ROOT / "sweeps" / "paper").glob("*.toml"))

@@ -20,10 +20,6 @@ from tiny import random_batch
 OBS, ACT = 4, 3
 
 
-def make_batch(n: int = 8, seed: int = 0, obs_dim: int = OBS, action_dim: int = ACT) -> Batch:
-    return random_batch(n, seed, obs_dim=obs_dim, action_dim=action_dim, reward="zeros")
-
-
 def loop_knn(rep: torch.Tensor, k: int) -> list[list[float]]:
     """The k smallest distances of every row to all rows (itself included), by plain loops."""
     rows = []
@@ -159,7 +155,7 @@ def test_disagreement_loss_and_reward_by_hand():
     config = DisagreementConfig(ensemble_size=3, hidden_dim=16)
     module = DisagreementReward(OBS, ACT, config)
     module.make_optimizer(config.lr, fused=False)
-    batch = make_batch(6)
+    batch = random_batch(6, obs_dim=OBS, reward="zeros")
     with torch.no_grad():
         preds = member_predictions(module, batch)
         errors = [[(batch.next_obs[i] - preds[k, i]).pow(2).sum().sqrt() for i in range(6)] for k in range(3)]
@@ -206,7 +202,7 @@ def test_icm_apt_loss_and_reward_by_hand():
     config = ICMAPTConfig(rep_dim=rep_dim, hidden_dim=hidden, knn_k=3)
     module = ICMAPTReward(OBS, ACT, config)
     module.make_optimizer(config.lr, fused=False)
-    batch = make_batch(n, seed=2)
+    batch = random_batch(n, seed=2, obs_dim=OBS, reward="zeros")
     lin, ln = module.trunk[0], module.trunk[1]
     f1, f2 = module.forward_model[0], module.forward_model[2]
     i1, i2 = module.inverse_model[0], module.inverse_model[2]
@@ -241,7 +237,7 @@ def test_icm_apt_trunk_gets_gradient_from_both_states():
     """As URLB, e(s') is not detached in the loss: the trunk also learns through the targets."""
     torch.manual_seed(0)
     module = ICMAPTReward(OBS, ACT, ICMAPTConfig(rep_dim=5, hidden_dim=8))
-    batch = make_batch(6)
+    batch = random_batch(6, obs_dim=OBS, reward="zeros")
     module.loss(batch).backward()
     grad_both = module.trunk[0].weight.grad.clone()
     module.zero_grad()
@@ -296,7 +292,7 @@ def test_sinkhorn_matches_loops_and_has_the_right_marginals():
 
 def test_proto_loss_by_hand_and_unit_prototypes_after_update():
     module = tiny_proto()
-    batch = make_batch(8)
+    batch = random_batch(8, obs_dim=OBS, reward="zeros")
     c = module.config
     with torch.no_grad():
         module.protos.weight.mul_(3.0)  # off the sphere: the update must normalise first
@@ -324,7 +320,7 @@ def test_proto_loss_by_hand_and_unit_prototypes_after_update():
 
 def test_proto_reward_is_distance_to_third_nearest_queue_entry():
     module = tiny_proto()
-    batch = make_batch(10, seed=4)
+    batch = random_batch(10, seed=4, obs_dim=OBS, reward="zeros")
     module.update(batch)
     with torch.no_grad():
         module.normalize_protos()
@@ -359,7 +355,7 @@ def test_candidate_sampling_equals_torch_multinomial():
 
 def test_proto_queue_pointer_cycles_and_wraps():
     module = tiny_proto()
-    batch = make_batch(6)
+    batch = random_batch(6, obs_dim=OBS, reward="zeros")
     ptrs = []
     for _ in range(3):
         module.score(batch)
@@ -377,7 +373,7 @@ def test_proto_queue_pointer_cycles_and_wraps():
 
 def test_proto_state_dict_round_trip_resumes_exactly():
     module = tiny_proto(seed=0)
-    batch = make_batch(6, seed=5)
+    batch = random_batch(6, seed=5, obs_dim=OBS, reward="zeros")
     for _ in range(3):  # pointer at 4 afterwards: not the initial value
         module.update_and_score(batch, {})
     assert module.queue_ptr == 4

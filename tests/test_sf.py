@@ -13,7 +13,7 @@ from dvfb.core.config import merge
 from dvfb.nets.features import FEATURE_LEARNERS
 from dvfb.protocols import protocols_of
 from dvfb.data import Batch
-from tests.tiny import ACT, D, E as E_, H, OBS, filled_replay, tiny_run_config
+from tiny import ACT, D, E as E_, H, OBS, filled_replay, tiny_run_config
 
 N = 6
 

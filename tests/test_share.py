@@ -1,6 +1,6 @@
 """Exported models (docs/sharing.md): `dvfb export` / `save_pretrained` write safetensors, config.json
 and a model card; `dvfb.load(DIR)` reads them back, with no pickle and no run directory, into the
-model the run itself gives."""
+model the run itself gives. The run is conftest's fb_maze_physics_run, which the tests only read."""
 
 from __future__ import annotations
 
@@ -19,20 +19,9 @@ import yaml
 
 import dvfb
 from dvfb.cli import main
-from tiny import tiny_flags
+from tiny import fb_physics_args
 
 MAZE_TASK = "point_mass_maze_reach_top_left"
-TINY = [*tiny_flags("fb"), "--torch-threads", "1", "--update-every", "4", "--checkpoint-every", "1000"]
-
-
-@pytest.fixture(scope="module")
-def run(tmp_path_factory) -> Path:
-    """An FB run on the maze (2 episodes, physics recorded) with one zero-shot result."""
-    path = tmp_path_factory.mktemp("share") / "fb"
-    assert main(["pretrain", "--agent", "fb", "--domain", "point_mass_maze", "--frames", "2000", "--seed-frames",
-                 "500", "--run-dir", str(path), "--replay.record-physics", "true", "--no-progress", *TINY]) == 0
-    assert main(["zeroshot", str(path), "--task", MAZE_TASK, "--inference.eval-episodes", "1"]) == 0
-    return path
 
 
 def _samples(seed: int = 0):
@@ -41,16 +30,17 @@ def _samples(seed: int = 0):
             rng.random(64).astype(np.float32))
 
 
-def test_an_exported_model_copied_elsewhere_acts_and_infers_as_the_run(run, tmp_path, monkeypatch, capsys):
+def test_an_exported_model_copied_elsewhere_acts_and_infers_as_the_run(fb_maze_physics_run, tmp_path, monkeypatch,
+                                                                      capsys):
     out = tmp_path / "export"
-    assert main(["export", str(run), "--out", str(out), "--with-inference-data"]) == 0
+    assert main(["export", str(fb_maze_physics_run), "--out", str(out), "--with-inference-data"]) == 0
     assert "fb on point_mass_maze, 2000 frames, seed 0" in capsys.readouterr().out
     assert sorted(p.name for p in out.iterdir()) == ["README.md", "config.json", "inference_data.npz",
                                                      "model.safetensors"]
     copy = tmp_path / "elsewhere" / "model"
     shutil.copytree(out, copy)
 
-    original = dvfb.load(run)
+    original = dvfb.load(fb_maze_physics_run)
 
     def no_pickle(*args, **kwargs):
         raise AssertionError("an exported model was read with pickle")
@@ -85,13 +75,13 @@ def test_an_exported_model_copied_elsewhere_acts_and_infers_as_the_run(run, tmp_
     assert torch.equal(original.model.statistics["cov_backward"], exported.model.statistics["cov_backward"])
 
 
-def test_the_model_card_carries_the_metadata_and_the_results(run, tmp_path):
-    out = dvfb.load(run).save_pretrained(tmp_path / "card")
+def test_the_model_card_carries_the_metadata_and_the_results(fb_maze_physics_run, tmp_path):
+    out = dvfb.load(fb_maze_physics_run).save_pretrained(tmp_path / "card")
     text = (out / "README.md").read_text()
     assert text.startswith("---\n")
     meta = yaml.safe_load(text.split("---\n")[1])
     assert meta["library_name"] == "dvfb" and "fb" in meta["tags"] and "point_mass_maze" in meta["tags"]
-    result = json_result(run)
+    result = json_result(fb_maze_physics_run)
     (entry,) = meta["model-index"][0]["results"]
     # The hub's results format: task, dataset and metrics; the budget in the metric's args.
     assert entry["task"]["type"] == "reinforcement-learning"
@@ -117,10 +107,10 @@ def json_result(run: Path) -> float:
     return json.loads((run / "zeroshot" / f"{MAZE_TASK}.json").read_text())["mean_return"]
 
 
-def test_an_export_is_not_a_run_and_a_report_passes_over_it(run, tmp_path, capsys):
+def test_an_export_is_not_a_run_and_a_report_passes_over_it(fb_maze_physics_run, tmp_path, capsys):
     out = tmp_path / "runs" / "export"
-    dvfb.load(run).save_pretrained(out)
-    shutil.copytree(run, tmp_path / "runs" / "fb", ignore=shutil.ignore_patterns("checkpoints"))
+    dvfb.load(fb_maze_physics_run).save_pretrained(out)
+    shutil.copytree(fb_maze_physics_run, tmp_path / "runs" / "fb", ignore=shutil.ignore_patterns("checkpoints"))
     assert main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "report")]) == 0
     capsys.readouterr()
     before = {p.name: p.read_bytes() for p in out.iterdir()}
@@ -130,7 +120,7 @@ def test_an_export_is_not_a_run_and_a_report_passes_over_it(run, tmp_path, capsy
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
-def test_bad_exports_are_one_line_and_change_nothing(run, tmp_path, capsys):
+def test_bad_exports_are_one_line_and_change_nothing(fb_maze_physics_run, tmp_path, capsys):
     def fails(argv, message):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err.strip().splitlines()
@@ -139,28 +129,30 @@ def test_bad_exports_are_one_line_and_change_nothing(run, tmp_path, capsys):
     taken = tmp_path / "taken"
     taken.mkdir()
     (taken / "notes.txt").write_text("keep")
-    fails(["export", str(run), "--out", str(taken)], "is not empty; pass --overwrite")
-    fails(["export", str(run), "--out", str(taken), "--overwrite"], "holds something else than an exported model")
+    fails(["export", str(fb_maze_physics_run), "--out", str(taken)], "is not empty; pass --overwrite")
+    fails(["export", str(fb_maze_physics_run), "--out", str(taken), "--overwrite"],
+          "holds something else than an exported model")
     assert [p.name for p in taken.iterdir()] == ["notes.txt"]
-    fails(["export", str(run), "--out", str(taken / "notes.txt")], "is a file")
-    fails(["export", str(run), "--out", str(tmp_path / "new"), "--snapshot", "7"], "has no snapshot at 7 frames")
+    fails(["export", str(fb_maze_physics_run), "--out", str(taken / "notes.txt")], "is a file")
+    fails(["export", str(fb_maze_physics_run), "--out", str(tmp_path / "new"), "--snapshot", "7"],
+          "has no snapshot at 7 frames")
     fails(["export", str(tmp_path / "nope"), "--out", str(tmp_path / "new")], "does not exist")
     bare = tmp_path / "bare"
-    shutil.copytree(run, bare, ignore=shutil.ignore_patterns("checkpoints"))
+    shutil.copytree(fb_maze_physics_run, bare, ignore=shutil.ignore_patterns("checkpoints"))
     fails(["export", str(bare), "--out", str(tmp_path / "new"), "--with-inference-data"], "no pre-training replay")
-    fails(["push", str(run), "--repo", "org/name"], "is not an exported model")
+    fails(["push", str(fb_maze_physics_run), "--repo", "org/name"], "is not an exported model")
     assert not (tmp_path / "new").exists()
     first = tmp_path / "first"
-    assert main(["export", str(run), "--out", str(first)]) == 0
+    assert main(["export", str(fb_maze_physics_run), "--out", str(first)]) == 0
     capsys.readouterr()
     before = {p.name: p.read_bytes() for p in first.iterdir()}
-    fails(["export", str(run), "--out", str(first)], "pass --overwrite")
+    fails(["export", str(fb_maze_physics_run), "--out", str(first)], "pass --overwrite")
     assert {p.name: p.read_bytes() for p in first.iterdir()} == before
-    assert main(["export", str(run), "--out", str(first), "--overwrite"]) == 0
+    assert main(["export", str(fb_maze_physics_run), "--out", str(first), "--overwrite"]) == 0
 
 
-def test_push_without_the_hub_extra_says_how_to_install_it(run, tmp_path):
-    out = dvfb.load(run).save_pretrained(tmp_path / "export")
+def test_push_without_the_hub_extra_says_how_to_install_it(fb_maze_physics_run, tmp_path):
+    out = dvfb.load(fb_maze_physics_run).save_pretrained(tmp_path / "export")
     done = subprocess.run([sys.executable, "-c", "import sys; sys.modules['huggingface_hub'] = None; "
                            "from dvfb.cli import main; sys.exit(main(sys.argv[1:]))", "push", str(out), "--repo",
                            "org/name"], capture_output=True, text=True)
@@ -169,9 +161,9 @@ def test_push_without_the_hub_extra_says_how_to_install_it(run, tmp_path):
                                    "(huggingface_hub)")
 
 
-def test_a_read_only_disk_is_one_line_and_leaves_nothing(run, small_disk, capsys):
+def test_a_read_only_disk_is_one_line_and_leaves_nothing(fb_maze_physics_run, small_disk, capsys):
     subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], check=True)
-    assert main(["export", str(run), "--out", str(small_disk / "model")]) == 2
+    assert main(["export", str(fb_maze_physics_run), "--out", str(small_disk / "model")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "Read-only file system" in err[0], err
     assert list(small_disk.iterdir()) == []
@@ -186,20 +178,21 @@ def _fill(disk: Path, leave: int) -> None:
         file.write(b"\0" * max(0, stats.f_bavail * stats.f_frsize - leave))
 
 
-def test_a_full_disk_is_one_line_and_keeps_the_export_it_would_replace(run, small_disk, capsys):
+def test_a_full_disk_is_one_line_and_keeps_the_export_it_would_replace(fb_maze_physics_run, small_disk, capsys):
     def fails(argv):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "No space left on device" in err[0] and "Traceback" not in err[0], err
 
     first = small_disk / "model"
-    assert main(["export", str(run), "--out", str(first)]) == 0
+    assert main(["export", str(fb_maze_physics_run), "--out", str(first)]) == 0
     capsys.readouterr()
     before = {p.name: p.read_bytes() for p in first.iterdir()}
     _fill(small_disk, 16 * 1024)  # room for the probe and the card, not for the weights
-    fails(["export", str(run), "--out", str(small_disk / "new" / "model")])  # safetensors' own write error
+    # safetensors' own write error
+    fails(["export", str(fb_maze_physics_run), "--out", str(small_disk / "new" / "model")])
     assert sorted(p.name for p in small_disk.iterdir()) == ["filler", "model"]  # the parents it made are gone
-    fails(["export", str(run), "--out", str(first), "--overwrite", "--with-inference-data"])
+    fails(["export", str(fb_maze_physics_run), "--out", str(first), "--overwrite", "--with-inference-data"])
     assert {p.name: p.read_bytes() for p in first.iterdir()} == before  # the model it would replace, intact
     assert dvfb.load(first).snapshot == 2000
 
@@ -221,11 +214,11 @@ def _edit_config(change):
     return damage
 
 
-def test_a_damaged_export_is_a_dvfb_error_naming_the_file(run, tmp_path):
+def test_a_damaged_export_is_a_dvfb_error_naming_the_file(fb_maze_physics_run, tmp_path):
     from dvfb.core.errors import DvfbError
 
     out = tmp_path / "export"
-    assert main(["export", str(run), "--out", str(out), "--with-inference-data"]) == 0
+    assert main(["export", str(fb_maze_physics_run), "--out", str(out), "--with-inference-data"]) == 0
     size = (out / "inference_data.npz").stat().st_size
     cases = [
         ("no_space", _edit_config(lambda info: info.pop("observation_space")), "config.json", "observation_space"),
@@ -293,8 +286,9 @@ def _closed_port() -> int:
         return sock.getsockname()[1]
 
 
-def test_push_refuses_without_credentials_before_the_network_and_network_errors_are_one_line(run, tmp_path):
-    out = dvfb.load(run).save_pretrained(tmp_path / "export")
+def test_push_refuses_without_credentials_before_the_network_and_network_errors_are_one_line(fb_maze_physics_run,
+                                                                                             tmp_path):
+    out = dvfb.load(fb_maze_physics_run).save_pretrained(tmp_path / "export")
     hub = _Hub()
     base = {k: v for k, v in os.environ.items() if not k.startswith(("HF_", "HUGGING_FACE"))}
     base.update(HF_HOME=str(tmp_path / "hf_home"), HF_HUB_DISABLE_TELEMETRY="1")
@@ -332,12 +326,12 @@ def _files(directory: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(directory.iterdir())}
 
 
-def test_an_exported_model_is_evaluated_from_the_command_line_beside_it(run, tmp_path, capsys):
+def test_an_exported_model_is_evaluated_from_the_command_line_beside_it(fb_maze_physics_run, tmp_path, capsys):
     """`dvfb zeroshot EXPORT` from fresh steps, from its inference data (a reward function, or the
     task's rewards relabelled from their physics), and by online inference, then `dvfb video EXPORT`:
     the results go to EXPORT.eval, a run directory made from it; the export is only read."""
     export = tmp_path / "shared" / "fb_maze"
-    assert main(["export", str(run), "--out", str(export), "--with-inference-data"]) == 0
+    assert main(["export", str(fb_maze_physics_run), "--out", str(export), "--with-inference-data"]) == 0
     before = _files(export)
     evaluation = tmp_path / "shared" / "fb_maze.eval"
 
@@ -353,7 +347,7 @@ def test_an_exported_model_is_evaluated_from_the_command_line_beside_it(run, tmp
     reward_file = tmp_path / "reward.py"
     reward_file.write_text("def reward(next_obs):\n    return next_obs[:, 0] - next_obs[:, 1]\n")
     own = tmp_path / "own"
-    shutil.copytree(run, own)
+    shutil.copytree(fb_maze_physics_run, own)
     source = ["--skill-source", "reward_fn", "--reward-fn", f"{reward_file}:reward", "--overwrite", *FAST]
     assert main(["zeroshot", str(own), "--task", MAZE_TASK, *source]) == 0
     assert main(["zeroshot", str(export), "--task", MAZE_TASK, *source]) == 0
@@ -387,25 +381,26 @@ def json_result_z(run: Path) -> list[float]:
     return json.loads((run / "zeroshot" / f"{MAZE_TASK}.json").read_text())["z"]
 
 
-def test_an_evaluation_directory_is_checked_and_a_failed_first_one_is_removed(run, tmp_path, capsys):
+def test_an_evaluation_directory_is_checked_and_a_failed_first_one_is_removed(fb_maze_physics_run, tmp_path, capsys):
     def fails(argv, message):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err.strip().splitlines()
         assert message in err[-1], (argv, err)
 
     export = tmp_path / "export"
-    dvfb.load(run).save_pretrained(export)
+    dvfb.load(fb_maze_physics_run).save_pretrained(export)
     capsys.readouterr()
-    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
-    fails(["zeroshot", str(export), "--task", MAZE_TASK, "--eval-dir", str(run)],
+    before = {p.name: p.read_bytes() for p in fb_maze_physics_run.iterdir() if p.is_file()}
+    fails(["zeroshot", str(export), "--task", MAZE_TASK, "--eval-dir", str(fb_maze_physics_run)],
           "was trained, not made from an exported")
-    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+    assert {p.name: p.read_bytes() for p in fb_maze_physics_run.iterdir() if p.is_file()} == before
     fails(["zeroshot", str(export), "--task", "walker_walk", *FAST], "belongs to domain 'walker'")
     assert not (tmp_path / "export.eval").exists()  # made for the command, removed with its failure
     # Exported without inference data: nothing to relabel.
     fails(["zeroshot", str(export), "--task", MAZE_TASK, "--skill-source", "dataset", *FAST],
           "--skill-source dataset needs --dataset DIR")
-    fails(["zeroshot", str(run), "--task", MAZE_TASK, "--eval-dir", str(tmp_path / "x")], "is not an exported model")
+    fails(["zeroshot", str(fb_maze_physics_run), "--task", MAZE_TASK, "--eval-dir", str(tmp_path / "x")],
+          "is not an exported model")
     other = tmp_path / "other"
     shutil.copytree(export, other)
     assert main(["zeroshot", str(export), "--task", MAZE_TASK, *FAST]) == 0
@@ -420,11 +415,10 @@ def test_an_evaluation_directory_is_checked_and_a_failed_first_one_is_removed(ru
           "holds the evaluation of another exported model")
 
 
-def test_the_card_lists_every_command_that_made_the_run(run, tmp_path):
+def test_the_card_lists_every_command_that_made_the_run(fb_maze_physics_run, tmp_path):
     resumed = tmp_path / "resumed"
-    shutil.copytree(run, resumed)
-    argv = ["pretrain", "--agent", "fb", "--domain", "point_mass_maze", "--frames", "2500", "--seed-frames", "500",
-            "--run-dir", str(resumed), "--replay.record-physics", "true", "--no-progress", *TINY, "--resume"]
+    shutil.copytree(fb_maze_physics_run, resumed)
+    argv = fb_physics_args(resumed, 2500, "--resume")
     assert main(argv) == 0
     (resume,) = json.loads((resumed / "meta.json").read_text())["resumes"]
     assert resume["command"] == ["dvfb", *argv] and resume["step"] == 2000

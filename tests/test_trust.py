@@ -27,17 +27,16 @@ from dvfb.data import Batch
 from dvfb.runs import RunDir, latest_checkpoint, load_checkpoint, load_snapshot, save_checkpoint
 from dvfb.runs.layout import FinetuneRun
 from dvfb.training.metric_windows import MetricWindow
-from tiny import OBS, ACT, tiny_config, tiny_flags
+from tiny import ACT, MAZE_SCHEDULE, OBS, tiny_config, tiny_flags
 
 TINY = [*tiny_flags("fb"), "--log-every", "250", "--torch-threads", "1"]
-MAZE = ["--domain", "point_mass_maze", "--seed-frames", "500", "--update-every", "4", "--checkpoint-every", "1000"]
 FAST_INFERENCE = ["--inference.steps", "200", "--inference.random-action-steps", "100",
                   "--inference.samples", "200", "--inference.eval-episodes", "1"]
 DVFB = [sys.executable, "-m", "dvfb"]
 
 
 def pretrain_argv(run_dir: Path, frames: int, *extra: str) -> list[str]:
-    return ["pretrain", "--agent", "fb", *MAZE, "--frames", str(frames), "--run-dir", str(run_dir),
+    return ["pretrain", "--agent", "fb", *MAZE_SCHEDULE, "--frames", str(frames), "--run-dir", str(run_dir),
             "--no-progress", *TINY, *extra]
 
 
@@ -133,11 +132,12 @@ def test_bad_protocol_choices_are_one_line_and_create_nothing(finished_run, argv
     assert not (finished_run / "finetune").exists() and not (finished_run / "zeroshot").exists()
 
 
-def test_verbose_flag_after_the_subcommand(finished_run, capsys):
-    argv = ["zeroshot", str(finished_run), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "-v",
+def test_verbose_flag_after_the_subcommand(finished_run, tmp_path, capsys):
+    run = Path(shutil.copytree(finished_run, tmp_path / "copy"))  # the module's run stays without results
+    argv = ["zeroshot", str(run), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "-v",
             "--overwrite", "--no-progress"]
     assert main(argv) == 0
-    assert (finished_run / "zeroshot" / "point_mass_maze_reach_top_left.json").is_file()
+    assert (run / "zeroshot" / "point_mass_maze_reach_top_left.json").is_file()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -269,7 +269,7 @@ def test_a_signal_changes_no_metric_record_of_a_group_or_a_fine_tuning(finished_
     """SIGTERM, then --resume: every member's metric records (and a fine-tuning's, and its curve)
     equal those of a run that was never stopped, fps aside; so do the learners."""
     full, split = str(tmp_path / "full_{seed}"), str(tmp_path / "split_{seed}")
-    group = ["pretrain", "--agent", "fb", *MAZE, "--frames", "2500", "--no-progress", *TINY, "--seeds", "0,1"]
+    group = ["pretrain", "--agent", "fb", *MAZE_SCHEDULE, "--frames", "2500", "--no-progress", *TINY, "--seeds", "0,1"]
     assert main([*group, "--run-dir", full]) == 0
     err = _interrupted([*group, "--run-dir", split], tmp_path / "split_1" / "metrics" / "train.jsonl")
     # The message names where each member continues, not the folder they share.
@@ -280,9 +280,11 @@ def test_a_signal_changes_no_metric_record_of_a_group_or_a_fine_tuning(finished_
         for key, modules in _snapshot_modules(a, 2500).items():
             for name, tensor in modules.items():
                 assert torch.equal(tensor, _snapshot_modules(b, 2500)[key][name]), (seed, key, name)
-    assert main(["finetune", str(finished_run), *FINETUNE, "--name", "full"]) == 0
-    ft = finished_run / "finetune"
-    _interrupted(["finetune", str(finished_run), *FINETUNE, "--name", "split"], ft / "split" / "metrics" / "train.jsonl")
+    # On a copy: the module's run stays without fine-tunings (a later test copies it and makes its own "full").
+    run = Path(shutil.copytree(finished_run, tmp_path / "fb"))
+    assert main(["finetune", str(run), *FINETUNE, "--name", "full"]) == 0
+    ft = run / "finetune"
+    _interrupted(["finetune", str(run), *FINETUNE, "--name", "split"], ft / "split" / "metrics" / "train.jsonl")
     assert metric_records(ft / "full")["train.jsonl"] and metric_records(ft / "full") == metric_records(ft / "split")
     curve = lambda name: json.loads((ft / name / "curve.json").read_text())["curve"]  # noqa: E731
     assert [p["returns"] for p in curve("full")] == [p["returns"] for p in curve("split")]
@@ -510,7 +512,7 @@ def test_a_pointer_to_a_missing_checkpoint_deletes_nothing_on_resume(finished_ru
 
 def test_a_fine_tuning_skill_option_the_method_cannot_take_is_refused_before_any_work(tmp_path, capsys):
     run = tmp_path / "diayn"
-    argv = ["pretrain", "--agent", "diayn", *MAZE, "--frames", "1000", "--run-dir", str(run), "--no-progress",
+    argv = ["pretrain", "--agent", "diayn", *MAZE_SCHEDULE, "--frames", "1000", "--run-dir", str(run), "--no-progress",
             "--seed-frames", "500", "--update-every", "4", "--ddpg.hidden-dim", "32", "--ddpg.batch-size", "32",
             "--diayn.hidden-dim", "32", "--torch-threads", "1"]
     assert main(argv) == 0
@@ -559,12 +561,13 @@ def test_a_seed_outside_0_to_2_32_is_one_line_exit_2(finished_run, command, seed
 
 
 ARGPARSE_ONE_LINE = [
-    (["pretrain", "--agent", "fb", *MAZE, "--processes", "two"], "argument --processes: invalid int value: 'two'"),
+    (["pretrain", "--agent", "fb", *MAZE_SCHEDULE, "--processes", "two"],
+     "argument --processes: invalid int value: 'two'"),
     (["export", "RUN", "--out", "OUT", "--inference-size", "0"], "argument --inference-size: invalid integer >= 1"),
-    (["pretrain", "--agent", "fb", *MAZE, "--fbee.uncertainty", "f"],
+    (["pretrain", "--agent", "fb", *MAZE_SCHEDULE, "--fbee.uncertainty", "f"],
      "--fbee.uncertainty is an option of fbee, dvfb_fbee, not of --agent fb"),
-    (["pretrain", "--agent", "fb", *MAZE, "--fbee.uncertainty=f"], "--fbee.uncertainty is an option of fbee"),
-    (["pretrain", "--agent", "fb", *MAZE, "--no-such-flag", "1"], "unrecognized arguments: --no-such-flag 1"),
+    (["pretrain", "--agent", "fb", *MAZE_SCHEDULE, "--fbee.uncertainty=f"], "--fbee.uncertainty is an option of fbee"),
+    (["pretrain", "--agent", "fb", *MAZE_SCHEDULE, "--no-such-flag", "1"], "unrecognized arguments: --no-such-flag 1"),
     (["zeroshot", "RUN", "--task", "point_mass_maze_reach_top_left", "--seed", "x"], "argument --seed: invalid seed"),
     (["report", "RUN"], "the following arguments are required: --out"),
 ]
@@ -591,7 +594,7 @@ def test_seeds_and_integer_options_out_of_range_are_one_line_exit_2_with_nothing
     only inside its range: 0 .. 2**32 - 1 for seeds, >= 1 for counts, 64 bits for any integer."""
     out = tmp_path / "out"
     argparse_cases = [
-        (["pretrain", "--agent", "fb", *MAZE, "--seeds", "0,4294967296", "--run-dir", str(out / "{seed}")],
+        (["pretrain", "--agent", "fb", *MAZE_SCHEDULE, "--seeds", "0,4294967296", "--run-dir", str(out / "{seed}")],
          "--seeds"),
         (["report", str(finished_run), "--out", str(out), "--bootstrap-seed", "-1"], "--bootstrap-seed"),
         (["report", str(finished_run), "--out", str(out), "--bootstrap-samples", "0"], "--bootstrap-samples"),
@@ -604,9 +607,9 @@ def test_seeds_and_integer_options_out_of_range_are_one_line_exit_2_with_nothing
         assert exc.value.code == 2
         assert flag in capsys.readouterr().err.strip().splitlines()[-1], argv
     config_cases = [
-        (["pretrain", "--agent", "fb", *MAZE, "--seed", "4294967296", "--run-dir", str(out)],
+        (["pretrain", "--agent", "fb", *MAZE_SCHEDULE, "--seed", "4294967296", "--run-dir", str(out)],
          "--seed 4294967296 is out of range: it must be >= 0 and <= 4294967295"),
-        (["pretrain", "--agent", "fb", *MAZE, "--fb.hidden-dim", str(2**64), "--run-dir", str(out)],
+        (["pretrain", "--agent", "fb", *MAZE_SCHEDULE, "--fb.hidden-dim", str(2**64), "--run-dir", str(out)],
          "must fit a 64-bit integer"),
         (["finetune", str(finished_run), "--task", "point_mass_maze_reach_top_left", "--finetune.eval-every",
           str(2**70)], "--finetune.eval-every 1180591620717411303424 is out of range: it must fit a 64-bit integer"),
@@ -622,7 +625,7 @@ def test_seeds_and_integer_options_out_of_range_are_one_line_exit_2_with_nothing
 
 def test_an_n_step_longer_than_the_episodes_is_one_line_and_creates_nothing(tmp_path, capsys):
     run = tmp_path / "rnd"
-    argv = ["pretrain", "--agent", "rnd", *MAZE, "--frames", "1000", "--run-dir", str(run), "--no-progress",
+    argv = ["pretrain", "--agent", "rnd", *MAZE_SCHEDULE, "--frames", "1000", "--run-dir", str(run), "--no-progress",
             "--ddpg.nstep", "5000", "--ddpg.hidden-dim", "32", "--ddpg.batch-size", "32"]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -642,11 +645,11 @@ def test_more_bad_inputs_are_one_line_exit_2_with_nothing_written(finished_run, 
         (["random-policy", "--domain", "point_mass_maze", "--output", str(output_dir), "--overwrite"],
          "is a directory"),
         (["analyze-exploration", str(finished_run), "--cell-size", "nan"], "positive finite"),
-        (["pretrain", "--agent", "icm_apt", *MAZE, "--run-dir", str(tmp_path / "knn"), "--icm_apt.knn-k", "300",
-          "--ddpg.batch-size", "256"], "--icm_apt.knn-k 300 is larger than the batch its neighbours are found in "
-         "(--ddpg.batch-size 256)"),
-        (["pretrain", "--agent", "dvfb", *MAZE, "--run-dir", str(tmp_path / "knn"), "--exploration.ce-k", "40",
-          "--fb.batch-size", "32"], "--exploration.ce-k 40 is larger than the batch"),
+        (["pretrain", "--agent", "icm_apt", *MAZE_SCHEDULE, "--run-dir", str(tmp_path / "knn"), "--icm_apt.knn-k",
+          "300", "--ddpg.batch-size", "256"],
+         "--icm_apt.knn-k 300 is larger than the batch its neighbours are found in (--ddpg.batch-size 256)"),
+        (["pretrain", "--agent", "dvfb", *MAZE_SCHEDULE, "--run-dir", str(tmp_path / "knn"), "--exploration.ce-k",
+          "40", "--fb.batch-size", "32"], "--exploration.ce-k 40 is larger than the batch"),
     ]
     before = sorted(p.relative_to(finished_run) for p in finished_run.rglob("*"))
     for argv, message in cases:

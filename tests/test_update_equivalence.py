@@ -35,7 +35,7 @@ from dvfb.nets.execution import NetRunner, PerfConfig
 from dvfb.core.errors import ConfigError
 from dvfb.nets import TwinHead
 from dvfb.data import Batch, ReplayBuffer
-from tiny import random_batch
+from tiny import per_row_discount_batch
 
 OBS, ACT, D, H, E, HB = 7, 3, 8, 24, 12, 20
 
@@ -51,10 +51,6 @@ def small_exploration(**overrides) -> ExplorationConfig:
     kw = dict(rnd_rep_dim=10, contrastive_hidden_dim=16, ce_k=5, alpha=3.0, beta=0.7)
     kw.update(overrides)
     return ExplorationConfig(**kw)
-
-
-def make_batch(n: int, seed: int, dtype=torch.float64) -> Batch:
-    return random_batch(n, seed, obs_dim=OBS, action_dim=ACT, future=True, discount="random", dtype=dtype)  # per-row D
 
 
 @pytest.fixture
@@ -362,7 +358,8 @@ def assert_update_matches_reference(agent: FBAgent, updates: int = 3, rtol=1e-9,
     reference = Reference(agent)
     log = record_grads(agent)
     for u in range(updates):
-        batch = make_batch(agent.config.batch_size, seed=100 + u, dtype=next(agent.parameters()).dtype)
+        batch = per_row_discount_batch(agent.config.batch_size, seed=100 + u, dtype=next(agent.parameters()).dtype,
+                                       obs_dim=OBS)
         torch.manual_seed(1000 + u)
         metrics = agent.update(batch)
         ref_losses, ref_grads = reference.update(batch, seed=1000 + u)
@@ -502,7 +499,7 @@ def test_update_path_has_no_host_sync(no_host_sync, agent_name, mode):
     agent = (DVFBAgent(OBS, ACT, fb, small_exploration(alpha_mode="adaptive")) if agent_name == "dvfb"
              else FBAgent(OBS, ACT, fb))
     for seed in range(2):
-        metrics = agent.update(make_batch(40, seed, torch.float32))
+        metrics = agent.update(per_row_discount_batch(40, seed, torch.float32, obs_dim=OBS))
     assert no_host_sync == []
     assert all(isinstance(v, torch.Tensor) and v.dim() == 0 for v in metrics.values())
 
@@ -523,7 +520,7 @@ def test_sync_detector_detects_a_sync(no_host_sync):
 
     agent.fb_losses = syncing_fb_losses
     with pytest.raises(AssertionError, match="host sync"):
-        agent.update(make_batch(40, 0, torch.float32))
+        agent.update(per_row_discount_batch(40, 0, torch.float32, obs_dim=OBS))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -557,7 +554,7 @@ def test_each_network_forward_runs_once_per_use(mode, b_calls):
         "contrastive.encoders.skill_net": 2,
     }
     counts = count_forwards(agent, expected)
-    agent.update(make_batch(40, 0, torch.float32))
+    agent.update(per_row_discount_batch(40, 0, torch.float32, obs_dim=OBS))
     assert counts == expected
 
 
@@ -566,7 +563,7 @@ def test_fb_networks_forward_counts():
     agent = FBAgent(OBS, ACT, small_config())
     expected = {"actor": 2, "backward_map": 2, "forward_map": 2, "forward_target": 1, "backward_target": 1}
     counts = count_forwards(agent, expected)
-    agent.update(make_batch(40, 0, torch.float32))
+    agent.update(per_row_discount_batch(40, 0, torch.float32, obs_dim=OBS))
     assert counts == expected
 
 
@@ -576,7 +573,7 @@ def test_no_unused_parameters():
     torch.manual_seed(0)
     agent = DVFBAgent(OBS, ACT, small_config(), small_exploration())
     log = record_grads(agent)
-    agent.update(make_batch(40, 0, torch.float32))
+    agent.update(per_row_discount_batch(40, 0, torch.float32, obs_dim=OBS))
     stepped = {name for grads in log.values() for name in grads}
     trainable = {name for name, p in agent.named_parameters() if p.requires_grad}
     assert stepped == trainable
@@ -638,7 +635,7 @@ def test_bf16_update_keeps_fp32_state_and_close_losses():
     fp32 = DVFBAgent(OBS, ACT, small_config(), small_exploration())
     bf16 = copy.deepcopy(fp32)
     bf16.model.net_runner = NetRunner(PerfConfig(precision="bf16"), "cpu")
-    batch = make_batch(40, 0, torch.float32)
+    batch = per_row_discount_batch(40, 0, torch.float32, obs_dim=OBS)
     torch.manual_seed(5)
     m32 = fp32.update(batch)
     torch.manual_seed(5)
@@ -711,7 +708,7 @@ def test_compile_failure_falls_back_to_eager_with_a_warning(monkeypatch, caplog)
     reference = copy.deepcopy(agent)
     reference.model.net_runner = NetRunner(None, "cpu")
     assert agent.net_runner.compiled
-    batch = make_batch(40, 0, torch.float32)
+    batch = per_row_discount_batch(40, 0, torch.float32, obs_dim=OBS)
     with caplog.at_level(logging.WARNING):
         torch.manual_seed(1)
         metrics = agent.update(batch)

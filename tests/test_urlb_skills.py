@@ -23,13 +23,9 @@ from dvfb.rewards.diayn import DIAYNConfig, DIAYNReward
 from dvfb.rewards.knn import KNNConfig
 from dvfb.rewards.smm import SMMConfig, SMMReward
 from dvfb.nets.skills import SkillSpec
-from tiny import random_batch
+from tiny import ACT, OBS, skill_batch
 
-OBS, ACT, H, N = 5, 3, 32, 16
-
-
-def make_batch(skill: SkillSpec, n: int = N, seed: int = 0) -> Batch:
-    return random_batch(n, seed, obs_dim=OBS, action_dim=ACT, step=0.5, skill=skill.sample, discount=0.99 ** 3)
+H, N = 32, 16
 
 
 def relu_mlp(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
@@ -90,7 +86,7 @@ def tiny_diayn(scale: float = 1.0, seed: int = 0) -> tuple[DIAYNReward, DIAYNCon
 def test_diayn_loss_and_reward_by_hand():
     module, _ = tiny_diayn(scale=2.0)
     assert_orthogonal_zero_bias(module)
-    batch = make_batch(DIAYN_SKILL)
+    batch = skill_batch(N, DIAYN_SKILL.sample, step=0.5)
     with torch.no_grad():
         logits = relu_mlp(module.discriminator, batch.next_obs)  # s_{t+n}, not s_t
         ce = [row_cross_entropy(logits[i], one_hot_index(batch.z[i])) for i in range(N)]
@@ -114,7 +110,7 @@ def test_diayn_reward_is_zero_for_a_uniform_discriminator():
     module, _ = tiny_diayn()
     with torch.no_grad():
         module.discriminator[-1].weight.zero_()
-    reward = module.score(make_batch(DIAYN_SKILL, seed=1))
+    reward = module.score(skill_batch(N, DIAYN_SKILL.sample, seed=1, step=0.5))
     torch.testing.assert_close(reward, torch.zeros(N, 1))
 
 
@@ -160,7 +156,7 @@ def smm_by_hand(module: SMMReward, batch: Batch, noise: torch.Tensor) -> dict:
 def test_smm_losses_and_terms_by_hand():
     module = tiny_smm()
     assert_orthogonal_zero_bias(module)
-    batch = make_batch(SMM_SKILL)
+    batch = skill_batch(N, SMM_SKILL.sample, step=0.5)
     noise = torch.randn(N, CODE, generator=torch.Generator().manual_seed(7))
     hand = smm_by_hand(module, batch, noise)
     terms = module.terms(batch, noise=noise)
@@ -174,7 +170,7 @@ def test_smm_losses_and_terms_by_hand():
 
 def test_smm_reward_is_the_update_pass_before_the_step():
     module = tiny_smm(seed=1)
-    batch = make_batch(SMM_SKILL, seed=2)
+    batch = skill_batch(N, SMM_SKILL.sample, seed=2, step=0.5)
     torch.manual_seed(11)
     noise = torch.randn(N, CODE)  # the draw update_and_score makes after the same seeding
     hand = smm_by_hand(module, batch, noise)
@@ -197,7 +193,7 @@ def test_smm_one_optimiser_with_two_learning_rates_equals_two_adams():
     disc_opt = torch.optim.Adam(twin.discriminator.parameters(), lr=1e-3)
     vae_opt = torch.optim.Adam(twin.vae.parameters(), lr=1e-2)
     for step in range(3):
-        batch = make_batch(SMM_SKILL, seed=10 + step)
+        batch = skill_batch(N, SMM_SKILL.sample, seed=10 + step, step=0.5)
         noise = torch.randn(N, CODE, generator=torch.Generator().manual_seed(step))
         module._step(module.terms(batch, noise=noise))
         terms = twin.terms(batch, noise=noise)  # URLB: VAE step, then discriminator step
@@ -235,7 +231,7 @@ def unit(row: list[float]) -> list[float]:
 def test_aps_loss_and_reward_by_hand():
     module = tiny_aps()
     assert_orthogonal_zero_bias(module)
-    batch = make_batch(APS_SKILL)
+    batch = skill_batch(N, APS_SKILL.sample, step=0.5)
     w = batch.z.tolist()
     with torch.no_grad():
         phi = relu_mlp(module.features, batch.next_obs).tolist()  # s_{t+n}
@@ -278,7 +274,7 @@ def test_aps_regress_task_hand_example():
 
 def test_aps_regress_task_uses_normalised_features_of_s_t():
     module = tiny_aps(seed=4)
-    batch = make_batch(APS_SKILL, n=64, seed=5)
+    batch = skill_batch(64, APS_SKILL.sample, seed=5, step=0.5)
     with torch.no_grad():
         phi = relu_mlp(module.features, batch.obs)  # s_t, not s_{t+n}
     x = torch.linalg.lstsq(batch.reward, phi / phi.norm(dim=-1, keepdim=True)).solution[0]
@@ -291,7 +287,7 @@ def test_aps_successor_feature_critic_by_hand():
     torch.manual_seed(0)
     core = APSCore(OBS, 4, ACT, DDPGConfig(hidden_dim=H, batch_size=N, fused_adam=False))
     assert core.critic.heads.out_dim == 4 and core.critic_target.heads.out_dim == 4
-    batch = make_batch(APS_SKILL)
+    batch = skill_batch(N, APS_SKILL.sample, step=0.5)
     with torch.no_grad():
         q = core.critic_values(core.critic, batch.obs, batch.z, batch.action)
         psi = core.critic(batch.obs, batch.z, batch.action)  # (2, N, d)

@@ -16,87 +16,66 @@ import torch
 
 from dvfb.cli import main
 from dvfb.runs import latest_checkpoint, load_checkpoint, load_snapshot
-from tiny import replayed_return
-
-# A network small enough that an update costs a few milliseconds.
-TINY = ["--fb.z-dim", "16", "--fb.hidden-dim", "32", "--fb.feature-dim", "16", "--fb.backward-hidden-dim", "32",
-        "--fb.batch-size", "64", "--log-every", "250"]
-# DVFB's own section (an FB run has no --exploration.* flags).
-TINY_EXPLORATION = ["--exploration.contrastive-hidden-dim", "32", "--exploration.rnd-rep-dim", "16",
-                    "--exploration.ce-k", "4"]
-MAZE = ["--domain", "point_mass_maze", "--seed-frames", "500", "--update-every", "4", "--checkpoint-every", "1000"]
-FAST_INFERENCE = ["--inference.steps", "300", "--inference.random-action-steps", "100",
-                  "--inference.samples", "300", "--inference.eval-episodes", "1"]
-
-
-def pretrain_args(run_dir: Path, frames: int, agent: str = "dvfb", extra: list[str] = ()) -> list[str]:
-    return ["pretrain", "--agent", agent, *MAZE, "--frames", str(frames), "--run-dir", str(run_dir),
-            "--no-progress", *TINY, *(TINY_EXPLORATION if agent == "dvfb" else ()), *extra]
-
-
-@pytest.fixture(scope="module")
-def pretrained(tmp_path_factory) -> Path:
-    """A DVFB run on the maze: 2000 frames, two episodes, one resume checkpoint per episode."""
-    run_dir = tmp_path_factory.mktemp("runs") / "dvfb_maze"
-    assert main(pretrain_args(run_dir, 2000)) == 0
-    return run_dir
+from tiny import FAST_INFERENCE, copy_run, pretrain_args, replayed_return
 
 
 @pytest.mark.slow
-def test_pretrain_writes_run_directory(pretrained: Path):
-    config = json.loads((pretrained / "config.json").read_text())
+def test_pretrain_writes_run_directory(dvfb_maze_run: Path):
+    config = json.loads((dvfb_maze_run / "config.json").read_text())
     assert config["agent"] == "dvfb" and config["domain"] == "point_mass_maze"
     assert config["fb"]["hidden_dim"] == 32 and config["preset"] == "small"
-    assert (pretrained / "snapshots" / "snapshot_2000.pt").is_file()
-    assert latest_checkpoint(pretrained).name == "resume_2000.pt"
-    lines = (pretrained / "metrics" / "train.jsonl").read_text().splitlines()
+    assert (dvfb_maze_run / "snapshots" / "snapshot_2000.pt").is_file()
+    assert latest_checkpoint(dvfb_maze_run).name == "resume_2000.pt"
+    lines = (dvfb_maze_run / "metrics" / "train.jsonl").read_text().splitlines()
     # Updates start at 500 frames; metrics are read back every 250 frames.
     assert [json.loads(line)["step"] for line in lines] == list(range(750, 2001, 250))
     assert {"fb_loss", "rnd_loss", "nce_loss", "exploration_critic_loss", "actor_loss"} <= set(json.loads(lines[-1]))
-    assert any(p.name.startswith("events.out.tfevents") for p in (pretrained / "tb").iterdir())
-    summary = json.loads((pretrained / "pretrain_summary.json").read_text())
+    assert any(p.name.startswith("events.out.tfevents") for p in (dvfb_maze_run / "tb").iterdir())
+    summary = json.loads((dvfb_maze_run / "pretrain_summary.json").read_text())
     assert summary["frames"] == 2000 and summary["episodes"] == 2
 
 
 @pytest.mark.slow
 @pytest.mark.e2e
-def test_zeroshot_then_finetune(pretrained: Path, capsys):
-    assert main(["zeroshot", str(pretrained), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE]) == 0
-    result = json.loads((pretrained / "zeroshot" / "point_mass_maze_reach_top_left.json").read_text())
+def test_zeroshot_then_finetune(dvfb_maze_run: Path, tmp_path: Path, capsys):
+    run = copy_run(dvfb_maze_run, tmp_path)  # it writes results: on a copy of the session's run
+    assert main(["zeroshot", str(run), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE]) == 0
+    result = json.loads((run / "zeroshot" / "point_mass_maze_reach_top_left.json").read_text())
     assert result["eval_episodes"] == 1 and len(result["returns"]) == 1
     # The recorded return is the episode's: the stored skill, replayed by hand with the model's mean
     # actions in the task's environment (the run's seed), gives it again.
     assert result["returns"][0] == pytest.approx(
-        replayed_return(pretrained, "point_mass_maze_reach_top_left", result["z"], result["seed"]), rel=1e-6)
+        replayed_return(run, "point_mass_maze_reach_top_left", result["z"], result["seed"]), rel=1e-6)
     assert result["mean_return"] == pytest.approx(np.mean(result["returns"]))
     z = torch.tensor(result["z"])
     assert torch.isclose(z.norm(), torch.tensor(16.0).sqrt(), atol=1e-4)  # z_r on the sphere
     assert result["inference_info"]["num_samples"] == 300
     assert "point_mass_maze_reach_top_left" in capsys.readouterr().out
 
-    args = ["finetune", str(pretrained), "--task", "point_mass_maze_reach_top_right", *FAST_INFERENCE,
+    args = ["finetune", str(run), "--task", "point_mass_maze_reach_top_right", *FAST_INFERENCE,
             "--finetune.frames", "1200", "--finetune.seed-frames", "400", "--finetune.eval-every", "600",
             "--finetune.eval-episodes", "1", "--finetune.checkpoint-every", "1000", "--no-progress"]
     assert main(args) == 0
-    curve = json.loads((pretrained / "finetune" / "point_mass_maze_reach_top_right" / "curve.json").read_text())
+    curve = json.loads((run / "finetune" / "point_mass_maze_reach_top_right" / "curve.json").read_text())
     assert [p["frames"] for p in curve["curve"]] == [0, 600, 1200]
     # F and B stayed frozen: the fine-tuning checkpoint holds only the actor and the task critic.
-    state = load_checkpoint(pretrained / "finetune" / "point_mass_maze_reach_top_right")
+    state = load_checkpoint(run / "finetune" / "point_mass_maze_reach_top_right")
     assert any(k.startswith("task_critic.") for k in state["finetuner"]["finetuner"])
     assert not any(k.startswith("agent.") for k in state["finetuner"]["finetuner"])
 
 
 @pytest.mark.slow
-def test_reward_fn_and_goal_inference(pretrained: Path, tmp_path: Path):
+def test_reward_fn_and_goal_inference(dvfb_maze_run: Path, tmp_path: Path):
+    run = copy_run(dvfb_maze_run, tmp_path)  # it writes results: on a copy of the session's run
     reward_file = tmp_path / "reward.py"
     reward_file.write_text("import numpy as np\n\ndef right_side(next_obs):\n    return (next_obs[:, 0] > 0).astype(np.float32)\n")
-    assert main(["zeroshot", str(pretrained), "--task", "point_mass_maze_reach_top_right", "--skill-source", "reward_fn",
+    assert main(["zeroshot", str(run), "--task", "point_mass_maze_reach_top_right", "--skill-source", "reward_fn",
                  "--reward-fn", f"{reward_file}:right_side", "--inference.eval-episodes", "1"]) == 0
-    result = json.loads((pretrained / "zeroshot" / "point_mass_maze_reach_top_right.json").read_text())
+    result = json.loads((run / "zeroshot" / "point_mass_maze_reach_top_right.json").read_text())
     assert result["skill_source"] == "reward_fn" and result["inference_info"]["num_samples"] > 0
-    assert main(["zeroshot", str(pretrained), "--task", "point_mass_maze_reach_bottom_left", "--skill-source", "goal",
+    assert main(["zeroshot", str(run), "--task", "point_mass_maze_reach_bottom_left", "--skill-source", "goal",
                  "--goal=-0.15,-0.15,0,0", "--inference.eval-episodes", "1"]) == 0
-    result = json.loads((pretrained / "zeroshot" / "point_mass_maze_reach_bottom_left.json").read_text())
+    result = json.loads((run / "zeroshot" / "point_mass_maze_reach_bottom_left.json").read_text())
     assert result["skill_source"] == "goal" and len(result["z"]) == 16
 
 
@@ -155,12 +134,12 @@ def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path: Path):
 # Bad input: a message naming the problem, exit 2, nothing overwritten
 
 
-def test_existing_run_is_not_overwritten(pretrained: Path, capsys):
-    before = (pretrained / "config.json").read_bytes()
-    assert main(pretrain_args(pretrained, 1000)) == 2
+def test_existing_run_is_not_overwritten(dvfb_maze_run: Path, capsys):
+    before = (dvfb_maze_run / "config.json").read_bytes()
+    assert main(pretrain_args(dvfb_maze_run, 1000)) == 2
     assert "already exists" in capsys.readouterr().err
-    assert (pretrained / "config.json").read_bytes() == before
-    assert (pretrained / "snapshots" / "snapshot_2000.pt").is_file()
+    assert (dvfb_maze_run / "config.json").read_bytes() == before
+    assert (dvfb_maze_run / "snapshots" / "snapshot_2000.pt").is_file()
 
 
 def test_zeroshot_missing_and_corrupt_run(tmp_path: Path, capsys):
@@ -174,28 +153,28 @@ def test_zeroshot_missing_and_corrupt_run(tmp_path: Path, capsys):
     assert (corrupt / "config.json").read_text() == "{not json"
 
 
-def test_corrupt_snapshot(pretrained: Path, tmp_path: Path, capsys):
+def test_corrupt_snapshot(dvfb_maze_run: Path, tmp_path: Path, capsys):
     copy = tmp_path / "copy"
-    shutil.copytree(pretrained, copy)
+    shutil.copytree(dvfb_maze_run, copy)
     (copy / "snapshots" / "snapshot_2000.pt").write_bytes(b"truncated")
     assert main(["zeroshot", str(copy), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE]) == 2
     assert "snapshot_2000.pt" in capsys.readouterr().err
 
 
-def test_task_from_another_domain(pretrained: Path, capsys):
-    assert main(["zeroshot", str(pretrained), "--task", "walker_walk"]) == 2
+def test_task_from_another_domain(dvfb_maze_run: Path, capsys):
+    assert main(["zeroshot", str(dvfb_maze_run), "--task", "walker_walk"]) == 2
     err = capsys.readouterr().err
     assert "walker_walk" in err and "point_mass_maze" in err and "point_mass_maze_reach_top_left" in err
-    assert main(["zeroshot", str(pretrained), "--task", "walker_moonwalk"]) == 2
+    assert main(["zeroshot", str(dvfb_maze_run), "--task", "walker_moonwalk"]) == 2
     assert "walker_walk" in capsys.readouterr().err  # lists the valid names
 
 
 @pytest.mark.slow
-def test_snapshot_from_another_agent_or_config(pretrained: Path, tmp_path: Path, capsys):
+def test_snapshot_from_another_agent_or_config(dvfb_maze_run: Path, tmp_path: Path, capsys):
     fb_run = tmp_path / "fb"
     assert main(pretrain_args(fb_run, 1000, agent="fb")) == 0
     mixed = tmp_path / "mixed"
-    shutil.copytree(pretrained, mixed)
+    shutil.copytree(dvfb_maze_run, mixed)
     shutil.copy(fb_run / "snapshots" / "snapshot_1000.pt", mixed / "snapshots" / "snapshot_2000.pt")
     assert main(["zeroshot", str(mixed), "--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE]) == 2
     assert "agent 'fb'" in capsys.readouterr().err
@@ -209,8 +188,8 @@ def test_snapshot_from_another_agent_or_config(pretrained: Path, tmp_path: Path,
     assert "another configuration" in capsys.readouterr().err
 
 
-def test_resume_with_other_config_is_refused(pretrained: Path, capsys):
-    assert main(pretrain_args(pretrained, 3000, extra=["--resume", "--exploration.alpha", "50"])) == 2
+def test_resume_with_other_config_is_refused(dvfb_maze_run: Path, capsys):
+    assert main(pretrain_args(dvfb_maze_run, 3000, extra=["--resume", "--exploration.alpha", "50"])) == 2
     assert "exploration" in capsys.readouterr().err
 
 
@@ -255,19 +234,20 @@ def test_code_preset_runs_end_to_end(tmp_path: Path):
 
 
 @pytest.mark.slow
-def test_finetune_resume_continues_as_if_uninterrupted(pretrained: Path):
+def test_finetune_resume_continues_as_if_uninterrupted(dvfb_maze_run: Path, tmp_path: Path):
+    run = copy_run(dvfb_maze_run, tmp_path)  # it writes results: on a copy of the session's run
     common = ["--task", "point_mass_maze_reach_top_left", *FAST_INFERENCE, "--finetune.seed-frames", "400",
               "--finetune.eval-every", "1000", "--finetune.eval-episodes", "1", "--finetune.checkpoint-every", "1000",
               "--no-progress"]
-    assert main(["finetune", str(pretrained), "--name", "full", "--finetune.frames", "2000", *common]) == 0
-    assert main(["finetune", str(pretrained), "--name", "split", "--finetune.frames", "1000", *common]) == 0
-    assert main(["finetune", str(pretrained), "--name", "split", "--finetune.frames", "2000", "--resume", *common]) == 0
-    full = json.loads((pretrained / "finetune" / "full" / "curve.json").read_text())
-    split = json.loads((pretrained / "finetune" / "split" / "curve.json").read_text())
+    assert main(["finetune", str(run), "--name", "full", "--finetune.frames", "2000", *common]) == 0
+    assert main(["finetune", str(run), "--name", "split", "--finetune.frames", "1000", *common]) == 0
+    assert main(["finetune", str(run), "--name", "split", "--finetune.frames", "2000", "--resume", *common]) == 0
+    full = json.loads((run / "finetune" / "full" / "curve.json").read_text())
+    split = json.loads((run / "finetune" / "split" / "curve.json").read_text())
     assert [p["frames"] for p in split["curve"]] == [0, 1000, 2000]
     assert full["curve"] == split["curve"]
-    a = load_checkpoint(pretrained / "finetune" / "full")["finetuner"]
-    b = load_checkpoint(pretrained / "finetune" / "split")["finetuner"]
+    a = load_checkpoint(run / "finetune" / "full")["finetuner"]
+    b = load_checkpoint(run / "finetune" / "split")["finetuner"]
     for part in ("actor", "finetuner"):
         assert a[part].keys() == b[part].keys()
         for key in a[part]:
