@@ -11,6 +11,7 @@ steps with skills from the method's prior, torch seed 0, three updates.
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import sys
 from pathlib import Path
@@ -44,6 +45,13 @@ def update_hash(name: str) -> str:
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("agents", nargs="*", metavar="AGENT", help="registered methods (default: every one)")
+    args = parser.parse_args()
+    unknown = [name for name in args.agents if name not in agent_names()]
+    if unknown:
+        parser.exit(2, f"update_hashes.py: unknown agent(s) {', '.join(unknown)}; "
+                       f"choose from {', '.join(agent_names())}\n")
     torch.set_num_threads(1)
-    for agent_name in sys.argv[1:] or agent_names():
+    for agent_name in args.agents or agent_names():
         print(f"{agent_name:14s} {update_hash(agent_name)}")
