@@ -501,6 +501,42 @@ def test_zeroshot_over_the_budget_iqm_ranking_and_probability_of_improvement(tmp
                                                                                               "60.0 ± 10.0"]
 
 
+def test_a_maze_whose_reference_never_reached_its_goal_is_on_raw_returns_beside_a_min_max_walker(tmp_path: Path):
+    """The report end to end: the maze's supervised reference returns 1e-125 (a goal it never
+    reached), so the maze's aggregates and budget curves are raw returns while walker's stay
+    min-max, and no aggregate adds the two."""
+    root = tmp_path / "runs"
+    _budget_runs(root)
+    maze, task = "point_mass_maze", "point_mass_maze_reach_top_left"
+    for agent, (early, final) in {"dvfb": ((0, 10, 20), (30, 40, 50)), "fb": ((0, 0, 0), (5, 5, 5))}.items():
+        for seed in range(3):
+            run = make_pretrain_run(root / f"{agent}_maze_s{seed}", agent=agent, domain=maze, seed=seed,
+                                    zeroshot={task: float(final[seed])})
+            _earlier_result(run, task, 50_000, float(early[seed]))
+    reference = make_pretrain_run(root / "supervised_maze", agent="supervised", domain=maze, zeroshot={task: 1e-125})
+    _earlier_result(reference, task, 50_000, 0.0)
+    random_files = []
+    for domain, tasks in (("walker", ("walker_walk", "walker_run")), (maze, (task,))):
+        random_files.append(tmp_path / f"random_{domain}.json")
+        write_json_atomic(random_files[-1], {"domain": domain, "seed": 0, "tasks": {
+            t: {"mean_return": 0.0, "returns": [0.0]} for t in tasks}})
+    out = tmp_path / "report"
+    assert main(["report", str(root), "--out", str(out), "--random", *map(str, random_files),
+                 "--bootstrap-samples", "200"]) == 0
+    budget = list(csv.DictReader(io.StringIO((out / "budget_zeroshot.csv").read_text())))
+    assert {(r["domain"], r["normaliser"]) for r in budget} == {("walker", "minmax"), (maze, "none")}
+    iqm = {(r["domain"], r["method"], int(r["frames"])): float(r["value"]) for r in budget if r["metric"] == "iqm"}
+    assert iqm[("walker", "dvfb", 100_000)] == pytest.approx(85.0)  # as on walker alone
+    assert iqm[(maze, "dvfb", 50_000)] == pytest.approx(10.0) and iqm[(maze, "dvfb", 100_000)] == pytest.approx(40.0)
+    aggregates = list(csv.DictReader(io.StringIO((out / "aggregates_zeroshot.csv").read_text())))
+    assert {r["scope"] for r in aggregates} == {"walker", maze}  # no "all domains"
+    assert {r["metric"] for r in aggregates if r["scope"] == maze} == {"iqm", "mean", "median",
+                                                                       "probability_of_improvement"}
+    assert "optimality_gap" in {r["metric"] for r in aggregates if r["scope"] == "walker"}
+    md = (out / "budget_zeroshot.md").read_text()
+    assert "On raw episode returns" in md.split(f"### {maze}")[1].split("### walker")[0]
+
+
 def test_no_budget_section_without_earlier_snapshots(walker_runs: Path, tmp_path: Path):
     report = make_report([walker_runs], tmp_path / "out")
     assert report.budget is None and not (tmp_path / "out" / "budget_zeroshot.md").exists()

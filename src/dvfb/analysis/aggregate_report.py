@@ -16,7 +16,8 @@ import numpy as np
 
 from dvfb.analysis import aggregate as agg
 from dvfb.analysis.common import Score, method_sort_key
-from dvfb.analysis.normalise import REFERENCE_METHODS, SUPERVISED, Normaliser, choose, missing_reference
+from dvfb.analysis.normalise import (MIXED, REFERENCE_METHODS, SUPERVISED, Normaliser, choose, describe_scale,
+                                    missing_reference, scale_name)
 from dvfb.analysis.normalise import normalisers as available_normalisers
 
 ALL_DOMAINS = "all domains"
@@ -52,13 +53,18 @@ class Scope:
 class Aggregates:
     kind: str  # "zeroshot" or "finetune"
     title: str
-    normaliser: Normaliser | None  # every scope's, when they share one; else None (see each Scope)
     scopes: list[Scope]
     notes: list[str] = field(default_factory=list)
 
     @property
     def uniform(self) -> bool:
-        return len({_scale_name(scope.normaliser) for scope in self.scopes}) <= 1
+        """Whether every scope is on one scale."""
+        return len({scale_name(scope.normaliser) for scope in self.scopes}) <= 1
+
+    @property
+    def normaliser(self) -> Normaliser | None:
+        """Every scope's normaliser when they share one; else None (each Scope has its own)."""
+        return self.scopes[0].normaliser if self.scopes and self.uniform else None
 
 
 def _domains(scores: Sequence[Score]) -> list[str]:
@@ -85,14 +91,11 @@ def compute(scores: Sequence[Score], kind: str, title: str, requested: str = "au
     normaliser = choose(requested, tasks, available)
     domains = _domains([s for s in scores if s.method not in REFERENCE_METHODS])
     groups = [(d, [s for s in scores if s.domain == d]) for d in domains]
-    scales = {name: normaliser if requested != "auto" else
-              choose("auto", sorted({s.task for s in group if s.method not in REFERENCE_METHODS}), available)
-              for name, group in groups}
-    uniform = len({_scale_name(n) for n in scales.values()}) == 1
+    domain_tasks = {d: sorted({s.task for s in group if s.method not in REFERENCE_METHODS}) for d, group in groups}
+    scales = {d: choose("auto", domain_tasks[d], available) if requested == "auto" else normaliser for d in domains}
+    uniform = len({scale_name(n) for n in scales.values()}) == 1
     notes = []
-    lacking_by_scope = [(None, tasks, normaliser)] if uniform else [
-        (name, sorted({s.task for s in group if s.method not in REFERENCE_METHODS}), scales[name])
-        for name, group in groups]
+    lacking_by_scope = [(None, tasks, normaliser)] if uniform else [(d, domain_tasks[d], scales[d]) for d in domains]
     for scope_name, scope_tasks, chosen in lacking_by_scope if requested == "auto" else ():
         prefix = f"{scope_name}: " if scope_name else ""
         if kind == "finetune" and SUPERVISED not in {s.method for s in scores}:
@@ -117,7 +120,7 @@ def compute(scores: Sequence[Score], kind: str, title: str, requested: str = "au
             scales[ALL_DOMAINS] = next(iter(scales.values()))
         else:
             notes.append("no aggregate over all domains: their scores are on different scales ("
-                         + ", ".join(f"{d}: {_scale_name(scales[d])}" for d in domains) + ")")
+                         + ", ".join(f"{d}: {scale_name(scales[d])}" for d in domains) + ")")
     scopes = []
     for name, group in groups:
         shared = agg.common_tasks(group)
@@ -134,11 +137,7 @@ def compute(scores: Sequence[Score], kind: str, title: str, requested: str = "au
         if thin:
             notes.append(f"{name}: fewer than {agg.MIN_RUNS_FOR_CI} runs on some task for {', '.join(thin)}: "
                          "no confidence intervals (with so few runs they are not meaningful)")
-    return Aggregates(kind, title, normaliser if uniform else None, scopes, notes)
-
-
-def _scale_name(normaliser: Normaliser | None) -> str:
-    return normaliser.name if normaliser is not None else "raw episode returns"
+    return Aggregates(kind, title, scopes, notes)
 
 
 def _metrics(scope: Scope) -> tuple[str, ...]:
@@ -175,18 +174,10 @@ def _estimate(e: agg.Estimate, digits: int = 1) -> str:
     return f"{e.value:.{digits}f} [{e.low:.{digits}f}, {e.high:.{digits}f}]"
 
 
-def _scale(normaliser: Normaliser | None) -> str:
-    return (f"the {normaliser.name} normaliser: {normaliser.description}" if normaliser is not None
-            else "raw episode returns (no normaliser covers every task)")
-
-
 def markdown(result: Aggregates, bootstrap: BootstrapConfig, figure: str | None, heading_level: int = 2) -> str:
     hashes = "#" * heading_level
     level = int(round(100 * bootstrap.confidence))
-    if not result.uniform:
-        scale = "each domain's own scale, named under its heading (no one normaliser covers every domain)"
-    else:
-        scale = _scale(result.scopes[0].normaliser if result.scopes else result.normaliser)
+    scale = describe_scale(result.normaliser) if result.uniform else MIXED
     parts = [f"{hashes} {result.title}: aggregates", "",
              f"Over runs × tasks, on {scale}. Point estimate [{level}% interval of a stratified bootstrap: "
              f"{bootstrap.samples} resamples, each task's runs resampled on their own, seed {bootstrap.seed}]. "
@@ -197,7 +188,7 @@ def markdown(result: Aggregates, bootstrap: BootstrapConfig, figure: str | None,
         metrics = _metrics(scope)
         parts += [f"{hashes}# {scope.name}", ""]
         if not result.uniform:
-            parts += [f"On {_scale(scope.normaliser)}.", ""]
+            parts += [f"On {describe_scale(scope.normaliser)}.", ""]
         parts += [f"Tasks: {', '.join(scope.tasks)}. " + "; ".join(
                       f"{m} {scope.matrices[m].min_runs} run{'s' if scope.matrices[m].min_runs != 1 else ''}/task"
                       for m in methods) + ".", "",

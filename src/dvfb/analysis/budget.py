@@ -29,7 +29,7 @@ from pathlib import Path
 from dvfb.analysis import aggregate as agg
 from dvfb.analysis.aggregate_report import BootstrapConfig
 from dvfb.analysis.common import RETURN, AnalysisError, PretrainEntry, Score, method_sort_key, zeroshot_scores
-from dvfb.analysis.normalise import RANDOM, REFERENCE_METHODS, SUPERVISED, Normaliser
+from dvfb.analysis.normalise import MIXED, RANDOM, RAW, REFERENCE_METHODS, SUPERVISED, Normaliser, scale_name
 from dvfb.analysis.tables import Table, build_table, sample_sizes, to_markdown
 
 TITLE = "Zero-shot over the pre-training budget"
@@ -81,7 +81,7 @@ class Budget:
     @property
     def uniform(self) -> bool:
         """Whether every domain's curves are on one scale."""
-        return len({d.unit for d in self.domains}) <= 1
+        return len({scale_name(d.normaliser) for d in self.domains}) <= 1
 
 
 def has_budget_axis(scores: Sequence[Score]) -> bool:
@@ -188,14 +188,13 @@ def _estimate(e: agg.Estimate, digits: int = 1) -> str:
 
 def _scale(normaliser: Normaliser | None) -> str:
     return (f"the {normaliser.name} normaliser of the final snapshot ({normaliser.description}), the same for "
-            "every snapshot" if normaliser is not None else "raw episode returns (no normaliser covers every task)")
+            "every snapshot" if normaliser is not None else RAW)
 
 
 def markdown(budget: Budget, bootstrap: BootstrapConfig, figure: str | None, heading_level: int = 2) -> str:
     hashes = "#" * heading_level
     level = int(round(100 * bootstrap.confidence))
-    scale = (_scale(budget.domains[0].normaliser) if budget.uniform and budget.domains
-             else "each domain's own scale, named under its heading (no one normaliser covers every domain)")
+    scale = _scale(budget.domains[0].normaliser) if budget.uniform and budget.domains else MIXED
     parts = [f"{hashes} {TITLE}", "",
              f"Every snapshot's zero-shot results. IQM over runs × tasks on {scale}, with its {level}% interval "
              f"of a stratified bootstrap ({bootstrap.samples} resamples, seed {bootstrap.seed}); no interval where "

@@ -65,6 +65,20 @@ class Normaliser:
         return [t for t in tasks if not self.covers(t)]
 
 
+RAW = "raw episode returns (no normaliser covers every task)"
+MIXED = "each domain's own scale, named under its heading (no one normaliser covers every domain)"
+
+
+def scale_name(normaliser: Normaliser | None) -> str:
+    """A scale's short name: the normaliser's, or raw episode returns."""
+    return normaliser.name if normaliser is not None else "raw episode returns"
+
+
+def describe_scale(normaliser: Normaliser | None) -> str:
+    """A scale in the words of a report's caption."""
+    return f"the {normaliser.name} normaliser: {normaliser.description}" if normaliser is not None else RAW
+
+
 def _task_means(scores: Iterable[Score], method: str) -> dict[str, float]:
     values: dict[str, list[float]] = defaultdict(list)
     for score in scores:
