@@ -15,7 +15,7 @@ its layer, its lines, the rooms it imports and its function-level imports. It re
 
 * a top-level module other than the face (every module lives in its layer's folder);
 * a folder that is no layer of :data:`LAYERS`;
-* an import that runs up a layer;
+* an import that runs up a layer, the face included (it stands above every layer);
 * a function-level import (an import inside a function or method, of dvfb or of any other package)
   without a comment, on its line or on the line above its block of imports, that says why it is not
   at the top of its module: a measured cost at start-up (matplotlib, the API behind ``dvfb.load``),
@@ -42,7 +42,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "dvfb"
 # The layers, lowest first: each is the folder of src/dvfb of that name.
 LAYERS: list[str] = ["core", "envs", "data", "nets", "rewards", "agents", "training", "protocols", "runs",
                      "analysis", "sweep", "workflows", "cli"]
-# The package's face: the two top-level modules, outside the layers (they may import any layer).
+# The package's face: the two top-level modules, outside the layers (they may import any layer; no
+# layer may import them).
 FACE = ("__init__", "__main__")
 
 
@@ -180,6 +181,11 @@ def check(rooms: dict[str, Room] | None = None, imports: list[Import] | None = N
         if not item.internal:
             continue
         source, target = room_of(item.module), room_of(item.target)
+        if target in FACE and source in LAYERS:
+            # The face imports the API (the workflows) on first use: a layer that imports it runs up.
+            problems.append(f"{item.module}:{item.line} imports {item.target}: the package's face stands above "
+                            "every layer; import from the layer that defines it (the version: dvfb.core.version)")
+            continue
         if source in FACE or target in FACE or source == target or source not in LAYERS or target not in LAYERS:
             continue  # the face stands outside the layers; a room without a layer is reported above
         if layer_of(target) > layer_of(source):

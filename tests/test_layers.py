@@ -62,6 +62,14 @@ def test_the_check_finds_a_folder_that_is_no_layer(tmp_path):
     assert len(problems) == 1 and "dvfb/utils/ is no layer's folder" in problems[0]
 
 
+def test_the_check_finds_a_layer_that_imports_the_face(tmp_path):
+    package = _copy_of_the_package(tmp_path)
+    (package / "runs" / "stamp.py").write_text("from dvfb import __version__\n")
+    problems = layers.check(package=package)
+    assert len(problems) == 1 and "dvfb.runs.stamp:1 imports dvfb" in problems[0]
+    assert "the package's face stands above every layer" in problems[0]
+
+
 def test_analysis_and_sweep_stand_below_workflows():
     order = layers.LAYERS
     assert order.index("analysis") < order.index("workflows") and order.index("sweep") < order.index("workflows")

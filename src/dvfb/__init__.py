@@ -4,7 +4,7 @@
 everything else.
 """
 
-__version__ = "0.1.0"
+from dvfb.core.version import __version__  # noqa: F401 (the package's version, re-exported)
 
 
 def load(run_dir, snapshot=None, device=None):

@@ -14,7 +14,7 @@ import argparse
 import logging
 import sys
 
-from dvfb import __version__
+from dvfb.core.version import __version__
 from dvfb.agents import agent_names
 from dvfb.cli import (analyze, dataset, demo, finetune, info, pretrain, random_policy, report, share, status,
                       supervised, sweep, video, zeroshot)

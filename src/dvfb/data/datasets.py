@@ -57,9 +57,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from dvfb import __version__, envs
+from dvfb import envs
 from dvfb.core.errors import ConfigError, DvfbError, RunDirError
 from dvfb.core.files import read_json, write_json_atomic
+from dvfb.core.version import __version__
 from dvfb.data.buffer import PHYSICS_COLUMN, Column, ReplayBuffer, physics_columns
 
 DATASET_FORMAT = 1

@@ -17,7 +17,7 @@ from typing import IO, Any, TypeVar
 
 import torch
 
-from dvfb import __version__
+from dvfb.core.version import __version__
 from dvfb.core.config import load_json, save_json, to_dict
 from dvfb.core.errors import ConfigError, RunDirError
 from dvfb.core.files import _TEMP_MARK, _atomic_write, read_json, write_json_atomic

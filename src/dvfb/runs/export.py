@@ -30,7 +30,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from dvfb import __version__
+from dvfb.core.version import __version__
 from dvfb.agents import Model, make_model
 from dvfb.core.config import to_dict
 from dvfb.core.errors import CheckpointError, ConfigError, RunDirError
