@@ -22,6 +22,7 @@ import pytest
 import torch
 
 import dvfb.envs  # noqa: F401
+from dvfb.cli import main
 from tiny import fb_physics_args, pretrain_args, tree_bytes
 
 torch.set_num_threads(1)
@@ -74,8 +75,6 @@ def _shared(name: str, run: Path) -> Path:
 def dvfb_maze_run(tmp_path_factory) -> Path:
     """A DVFB run on the maze (tiny.pretrain_args(run, 2000)): 2000 frames, two episodes, one resume
     checkpoint per episode. Read only: write into tiny.copy_run(dvfb_maze_run, tmp_path)."""
-    from dvfb.cli import main
-
     run = tmp_path_factory.mktemp("shared") / "dvfb_maze"
     assert main(pretrain_args(run, 2000)) == 0
     return _shared("dvfb_maze_run", run)
@@ -85,8 +84,6 @@ def dvfb_maze_run(tmp_path_factory) -> Path:
 def fb_maze_physics_run(tmp_path_factory) -> Path:
     """An FB run on the maze that records physics (tiny.fb_physics_args(run, 2000): two episodes)
     with one zero-shot result on point_mass_maze_reach_top_left. Read only, as dvfb_maze_run."""
-    from dvfb.cli import main
-
     run = tmp_path_factory.mktemp("shared") / "fb"
     assert main(fb_physics_args(run, 2000)) == 0
     task = "point_mass_maze_reach_top_left"
