@@ -510,6 +510,31 @@ def test_dry_run_of_a_bad_sweep_is_one_line_and_creates_nothing(tmp_path: Path, 
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml"]
 
 
+def test_a_grid_that_only_adds_cells_grows_the_sweep_and_one_that_changes_a_cell_is_refused(tmp_path: Path, capsys):
+    files = {"agents": ["fb", "supervised"], "seeds": [0, 1], "phases": ["pretrain", "zeroshot", "finetune"],
+             "finetune_tasks": ["walker_walk"], "exclude": ["supervised_*_s1"], "overrides": {"frames": 10000}}
+    sweep = tmp_path / "sweep"
+    runner.prepare(sweep, spec.build({}, files, {}, {}))
+    stored = (sweep / spec.SWEEP_FILE).read_text()
+    grown = spec.build({}, {**files, "domains": ["walker", "hopper"], "finetune_tasks": ["walker_walk", "hopper_hop"],
+                            "exclude": ["supervised_*_s1", "fb_hopper_s1"]}, {}, {})
+    lines = runner.dry_run(sweep, grown)
+    assert "the grid grows: 5 new cell(s) beside the 6 of" in capsys.readouterr().out
+    assert (sweep / spec.SWEEP_FILE).read_text() == stored  # a dry run writes nothing
+    assert any("25 to run (11 pretrain, 11 zeroshot, 3 finetune)" in line for line in lines)  # nothing ran yet
+    # Each way of changing what a stored cell is, or of dropping one, is another sweep.
+    for change, why in (({"exclude": ["supervised_*_s1", "fb_walker_s1"]}, "cell fb_walker_s1 is not in the new grid"),
+                        ({"overrides": {"frames": 20000}}, "would get another config"),
+                        ({"finetune_tasks": ["hopper_hop"], "domains": ["walker", "hopper"]},
+                         r"would lose its unit\(s\) finetune-walker_walk"),
+                        ({"preset": "code"}, "another preset")):
+        with pytest.raises(ConfigError, match=why):
+            runner.prepare(sweep, spec.build({}, {**files, **change}, {}, {}))
+        assert (sweep / spec.SWEEP_FILE).read_text() == stored
+    runner.prepare(sweep, grown)
+    assert json.loads((sweep / spec.SWEEP_FILE).read_text())["domains"] == ["walker", "hopper"]
+
+
 def test_dry_run_checks_an_existing_sweep_directory_and_changes_nothing(tmp_path: Path, capsys):
     config = spec.build({}, {"agents": ["fb"], "seeds": [0, 1], "overrides": {"frames": 10000}}, {}, {})
     sweep = tmp_path / "sweep"

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from dvfb.analysis.common import AnalysisError
 from dvfb.analysis.report import make_report
-from dvfb.core.config import format_value
+from dvfb.core.config import format_value, to_dict
 from dvfb.core.errors import ConfigError, DvfbError
 from dvfb.runs import LOCK_FILE, RunLock, last_metric_record, read_json, recent_rate, write_json_atomic
 from dvfb.runs.machine import cores
@@ -60,11 +60,40 @@ def prepare(path: Path, requested: SweepConfig) -> SweepDir:
 
 
 def check_same_grid(sweep: SweepDir, requested: SweepConfig) -> None:
-    """A re-run must ask for the grid its directory holds (the executor settings may differ)."""
-    differ = spec.same_grid(spec.load_stored(sweep.path), requested)
-    if differ:
-        raise ConfigError(f"{sweep.path} holds another sweep ({', '.join(differ)} differ from {sweep.config_path}); "
-                          "choose another --dir, or repeat the original command to continue it")
+    """A re-run must ask for the grid its directory holds (the executor settings may differ), or
+    for a grid that grows it: one that keeps every stored cell with the same config and units and
+    adds cells or units (a domain, a method, a seed, a task added to a study). A grown grid says so
+    in one line; anything else is refused and changes nothing (docs/sweeps.md, "Growing a sweep")."""
+    stored = spec.load_stored(sweep.path)
+    differ = spec.same_grid(stored, requested)
+    if not differ:
+        return
+    problem = _not_grown(stored, requested)
+    if problem is not None:
+        raise ConfigError(f"{sweep.path} holds another sweep ({', '.join(differ)} differ from {sweep.config_path}; "
+                          f"{problem}); choose another --dir, or repeat the original command to continue it")
+    old = {cell.name for cell in spec.cells(stored)}
+    added = [cell.name for cell in spec.cells(requested) if cell.name not in old]
+    print(f"[sweep] the grid grows: {len(added)} new cell(s) beside the {len(old)} of {sweep.config_path} "
+          f"({', '.join(differ)} extended); the stored cells keep their results")
+
+
+def _not_grown(stored: SweepConfig, requested: SweepConfig) -> str | None:
+    """Why ``requested`` does not grow ``stored`` (a stored cell missing, or with another config or
+    fewer units), or None when it does."""
+    if requested.preset != stored.preset:
+        return "another preset"
+    new = {cell.name: cell for cell in spec.cells(requested)}
+    for cell in spec.cells(stored):
+        if cell.name not in new:
+            return f"cell {cell.name} is not in the new grid"
+        if to_dict(spec.cell_config(stored, cell)) != to_dict(spec.cell_config(requested, new[cell.name])):
+            return f"cell {cell.name} would get another config"
+        kept = {unit.name for unit in units_of(requested, new[cell.name])}
+        lost = [unit.name for unit in units_of(stored, cell) if unit.name not in kept]
+        if lost:
+            return f"cell {cell.name} would lose its unit(s) {', '.join(lost)}"
+    return None
 
 
 def check_new_sweep_dir(path: Path) -> None:
