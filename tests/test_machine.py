@@ -15,7 +15,8 @@ import torch
 
 from dvfb.cli import build_parser
 from dvfb.runs.machine import cgroup_cpu_quota, cores, default_torch_threads
-from dvfb.workflows.resources import use_threads
+from dvfb.runs.directory import RunDir
+from dvfb.workflows.resources import recorded_threads, use_threads
 from tiny import tiny_flags
 
 
@@ -64,13 +65,56 @@ def test_a_command_uses_its_flag_else_the_runs_setting_at_most_the_cpus_else_the
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     before = torch.get_num_threads()
     try:
-        assert use_threads(3) == 3 and torch.get_num_threads() == 3  # asked for: as asked
+        assert use_threads(1) == 1 and torch.get_num_threads() == 1  # asked for: as asked, up to the CPUs
+        assert use_threads(cores()) == cores()
         assert use_threads(None, run_setting=1) == 1  # the run's own
         assert use_threads(None, run_setting=cores() + 7) == cores()  # a run made on a larger machine
         assert use_threads(None, run_setting=0) == max(1, cores() // 2)
         assert use_threads(0, run_setting=1) == max(1, cores() // 2)  # 0: the default, whatever the run says
     finally:
         torch.set_num_threads(before)
+
+
+def test_threads_above_the_cpus_are_capped_with_one_line(monkeypatch, capsys):
+    """OMP_NUM_THREADS=1000 or --torch-threads 10000 on a small machine: at most the CPUs, said once."""
+    before = torch.get_num_threads()
+    try:
+        monkeypatch.setenv("OMP_NUM_THREADS", "1000")
+        assert use_threads(0) == cores() and torch.get_num_threads() == cores()
+        use_threads(0)
+        monkeypatch.delenv("OMP_NUM_THREADS")
+        assert use_threads(10000) == cores()
+        lines = capsys.readouterr().err.splitlines()
+        assert lines == [f"[threads] OMP_NUM_THREADS=1000 is more than the {cores()} CPU(s) this process may use; "
+                         f"using {cores()} (more threads than CPUs make OpenMP crawl)",
+                         f"[threads] --torch-threads 10000 is more than the {cores()} CPU(s) this process may use; "
+                         f"using {cores()} (more threads than CPUs make OpenMP crawl)"]
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_the_threads_a_run_computed_with_are_its_last_resumes_else_its_own_else_its_configs(tmp_path):
+    run = RunDir(tmp_path)
+    (tmp_path / "meta.json").write_text(json.dumps({"machine": {"torch_threads": 3}}))
+    assert recorded_threads(run) == 3
+    (tmp_path / "meta.json").write_text(json.dumps({"machine": {"torch_threads": 3},
+                                                    "resumes": [{"torch_threads": 5}, {"torch_threads": 2}]}))
+    assert recorded_threads(run) == 2
+    (tmp_path / "meta.json").write_text(json.dumps({"machine": {}}))  # a run made before meta.json said
+    assert recorded_threads(run) == 0
+    (tmp_path / "meta.json").write_text("{not json")
+    assert recorded_threads(run) == 0
+
+
+def test_a_pretraining_asking_for_more_threads_than_cpus_runs_with_the_cpus(tmp_path):
+    run = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", "dvfb", "pretrain", "--agent", "fb", "--domain", "point_mass_maze",
+                           *tiny_flags("fb"), "--frames", "600", "--seed-frames", "500", "--update-every", "4",
+                           "--run-dir", str(run), "--no-progress", "--torch-threads", "10000"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert f"--torch-threads 10000 is more than the {cores()} CPU(s)" in done.stderr
+    assert json.loads((run / "meta.json").read_text())["machine"]["torch_threads"] == cores()
 
 
 COMPUTING = {

@@ -26,8 +26,9 @@ from dvfb.core.errors import NonFiniteLossError
 from dvfb.data import Batch
 from dvfb.runs import RunDir, latest_checkpoint, load_checkpoint, load_snapshot, save_checkpoint
 from dvfb.runs.layout import FinetuneRun
+from dvfb.runs.machine import cores
 from dvfb.training.metric_windows import MetricWindow
-from tiny import ACT, MAZE_SCHEDULE, OBS, tiny_config, tiny_flags
+from tiny import ACT, MAZE_SCHEDULE, OBS, run_cli, tiny_config, tiny_flags
 
 TINY = [*tiny_flags("fb"), "--log-every", "250", "--torch-threads", "1"]
 FAST_INFERENCE = ["--inference.steps", "200", "--inference.random-action-steps", "100",
@@ -243,6 +244,52 @@ def test_sigterm_checkpoints_and_resume_equals_uninterrupted(tmp_path):
     # records at the same steps (docs/methods.md, "Training loop").
     records = metric_records(full)
     assert records["train.jsonl"] and records == metric_records(split)
+
+
+def _without_threads(argv: list[str]) -> list[str]:
+    """``argv`` without its ``--torch-threads N``."""
+    at = argv.index("--torch-threads")
+    return argv[:at] + argv[at + 2:]
+
+
+@pytest.mark.slow
+def test_a_resume_keeps_the_runs_threads_whatever_the_shells_omp_num_threads(tmp_path):
+    """A run made with --torch-threads 1, stopped, and resumed by the same command plus --resume but
+    without the thread flag, from a shell whose OMP_NUM_THREADS is 2: it computes with its own one
+    thread, keeps config.json's setting, says nothing, and ends as the uninterrupted run does."""
+    full, split = tmp_path / "full", tmp_path / "split"
+    assert main(pretrain_argv(full, 2000)) == 0  # TINY has --torch-threads 1
+    process = _spawn(pretrain_argv(split, 2000))
+    _wait_for(split / "metrics" / "train.jsonl", process)
+    process.send_signal(signal.SIGTERM)
+    _out, err = process.communicate(timeout=120)
+    assert process.returncode == 128 + signal.SIGTERM, err
+    resumed = subprocess.run([*DVFB, *_without_threads(pretrain_argv(split, 2000, "--resume"))], capture_output=True,
+                             text=True, env={**os.environ, "OMP_NUM_THREADS": "2"})
+    assert resumed.returncode == 0, resumed.stderr
+    assert "[threads]" not in resumed.stderr
+    assert json.loads((split / "meta.json").read_text())["resumes"][-1]["torch_threads"] == 1
+    assert json.loads((split / "config.json").read_text())["torch_threads"] == 1
+    a, b = _snapshot_modules(full, 2000), _snapshot_modules(split, 2000)
+    for key in a:
+        for name, tensor in a[key].items():
+            assert torch.equal(tensor, b[key][name]), (key, name)
+
+
+def test_a_resume_with_other_threads_says_so_in_one_line_and_records_them(tmp_path):
+    run = tmp_path / "run"
+    assert main(pretrain_argv(run, 1000)) == 0  # TINY has --torch-threads 1
+    threads = min(2, cores())
+    resumed = run_cli(*_without_threads(pretrain_argv(run, 1500, "--resume")), "--torch-threads", "2")
+    assert resumed.returncode == 0, resumed.stderr
+    said = [line for line in resumed.stderr.splitlines() if line.startswith("[threads]")]
+    if threads == 1:  # a one-CPU machine: the flag is capped back to the run's one thread
+        assert len(said) == 1 and "more than the 1 CPU(s)" in said[0]
+    else:
+        assert said == [f"[threads] resuming {run} with 2 torch thread(s) instead of the 1 it ran with "
+                        "(--torch-threads): its numbers may differ from an uninterrupted run's"]
+    assert json.loads((run / "config.json").read_text())["torch_threads"] == 2  # recorded, not silently
+    assert json.loads((run / "meta.json").read_text())["resumes"][-1]["torch_threads"] == threads
 
 
 def _interrupted(argv: list[str], watch: Path) -> str:

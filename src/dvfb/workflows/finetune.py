@@ -49,7 +49,7 @@ from dvfb.training.progress import Progress, notify
 from dvfb.training.rollout import Lane, rollout
 from dvfb.training.seeding import seed_everything
 from dvfb.workflows.group import Group, TrainingSteps, check_lockstep, check_one_method
-from dvfb.workflows.resources import check_replay, check_task_in_domain, open_run
+from dvfb.workflows.resources import check_replay, check_task_in_domain, open_run, resume_threads
 from dvfb.workflows.session import RunSession
 
 RESUME_KIND = "finetune_resume"
@@ -125,8 +125,13 @@ def _prepared(run_path, task, snapshot, inference, finetune, seed, name, resume,
     run = open_run(run_path, torch_threads)
     config = run.config
     check_task_in_domain(task, config.domain)
-    if protocol is None and resume:  # a resumed run keeps the fine-tuner it was started with
-        protocol = FinetuneRun.open(run.finetune_path(name or task)).config.protocol
+    if resume:
+        previous = FinetuneRun.open(run.finetune_path(name or task))
+        # A resume computes with the threads the fine-tuning computed with (the shell's
+        # OMP_NUM_THREADS aside), unless --torch-threads asks otherwise.
+        resume_threads(previous, torch_threads)
+        if protocol is None:  # a resumed run keeps the fine-tuner it was started with
+            protocol = previous.config.protocol
     protocol = resolve_finetuner(config.agent, protocol)
     finetuner_cls = finetuner_class(protocol)
     check_finetune_options(protocol, finetune or {})
@@ -281,6 +286,7 @@ class FinetuneSession(RunSession):
                 raise CheckpointError(f"cannot resume {self.run.path}: the checkpoint does not fit this run ({exc})") \
                     from exc
             self.run.save_config(self.run_config)  # only now may the config change (a larger --finetune.frames)
+            self.run.record_resume(self.command, self.step)
             notify(f"[finetune] resuming {self.run.path} from step {self.step} (of {cfg.frames})")
         else:
             held = None  # inference data the fine-tuner reads apart from its replay

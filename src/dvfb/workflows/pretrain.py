@@ -59,7 +59,8 @@ from dvfb.training.rollout import Lane, rollout
 from dvfb.training.seeding import seed_everything
 from dvfb.workflows.group import Group, TrainingSteps, check_lockstep
 from dvfb.workflows.processes import run_in_processes, shares, threads_per_process
-from dvfb.workflows.resources import check_memory, check_replay, check_task_in_domain, learner_state_bytes, setup_torch
+from dvfb.workflows.resources import (check_memory, check_replay, check_task_in_domain, learner_state_bytes,
+                                      resume_threads, setup_torch)
 from dvfb.workflows.session import RunSession
 
 RESUME_KIND = "pretrain_resume"
@@ -100,8 +101,17 @@ def pretrain(config: PretrainConfig, run_dir: str | Path | Sequence[str | Path],
             RunDir.check_new(path, overwrite)
     base, trained_task, dataset_info = _checked(replace(config, seed=seeds[0]) if many else config, paths, resume,
                                                 overwrite)
+    if resume:
+        # A resume computes with the threads the run computed with, whatever the shell's
+        # OMP_NUM_THREADS, and keeps its recorded setting unless --torch-threads asks otherwise.
+        stored = PretrainRun.open(paths[0])
+        resume_threads(stored, base.torch_threads)
+        if not base.torch_threads:
+            base = replace(base, torch_threads=stored.config.torch_threads)
+        device = resolve_device(base.device)
+    else:
+        device = setup_torch(base)
     configs = [replace(base, seed=seed) for seed in seeds] if many else [base]
-    device = setup_torch(base)
     what = f"pretrain {base.agent} {base.domain}" + (f" ({len(paths)} members)" if many else "")
     split = shares(len(paths), base.processes) if many else [range(1)]
     if len(split) > 1:  # the parent checks that the whole group fits, its children build the members

@@ -5,6 +5,7 @@ exported model is evaluated in)."""
 from __future__ import annotations
 
 import contextlib
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,9 +14,10 @@ import torch
 
 from dvfb import envs
 from dvfb.agents import get_spec
-from dvfb.core.errors import ConfigError
+from dvfb.core.errors import ConfigError, DvfbError
 from dvfb.nets.execution import resolve_device
 from dvfb.runs.export import evaluation_run, is_export, remove_evaluation_run
+from dvfb.runs.directory import RunDir
 from dvfb.runs.layout import PretrainRun
 from dvfb.runs.machine import cores, default_torch_threads
 from dvfb.runs.run_config import PretrainConfig
@@ -25,14 +27,78 @@ from dvfb.training.progress import notify
 def use_threads(requested: int | None = 0, run_setting: int = 0) -> int:
     """Set this process's torch threads (README.md, "Threads and progress") and return them:
     ``requested`` (a command's ``--torch-threads``) when positive; when None (not given to a command
-    on a run), the run's own ``torch_threads`` if it set one, at most the CPUs this process may use (a
-    run made on a large node, evaluated on a laptop); otherwise :func:`default_torch_threads`."""
+    on a run), the run's own ``torch_threads`` if it set one; otherwise :func:`default_torch_threads`.
+    Never more than the CPUs this process may use (a run made on a large node, evaluated on a
+    laptop; ``--torch-threads 10000``; ``OMP_NUM_THREADS=1000``): more runnable OpenMP threads than
+    cores make every operator wait for descheduled threads, and a run crawls. An explicit request
+    above the CPUs says so in one line."""
     if requested:
-        threads = requested
+        threads, asked = requested, f"--torch-threads {requested}"
     elif requested is None and run_setting > 0:
-        threads = min(run_setting, cores())
+        threads, asked = run_setting, None  # the run's own setting, quietly fitted to this machine
     else:
         threads = default_torch_threads()
+        asked = f"OMP_NUM_THREADS={threads}" if os.environ.get("OMP_NUM_THREADS", "").strip() else None
+    threads = fit_threads(threads, asked)
+    torch.set_num_threads(threads)
+    return threads
+
+
+_SAID: set[str] = set()  # the lines fit_threads has printed in this process (once each)
+
+
+def fit_threads(threads: int, asked: str | None = None) -> int:
+    """``threads``, at most :func:`~dvfb.runs.machine.cores`; when ``asked`` (what asked for them,
+    e.g. ``--torch-threads 10000``) names a request above the CPUs, one line says what is used."""
+    limit = cores()
+    if threads <= limit:
+        return threads
+    line = (f"[threads] {asked} is more than the {limit} CPU(s) this process may use; using {limit} "
+            "(more threads than CPUs make OpenMP crawl)")
+    if asked is not None and line not in _SAID:
+        _SAID.add(line)
+        notify(line)
+    return limit
+
+
+def recorded_threads(run: RunDir) -> int:
+    """The torch threads a run last computed with: its meta.json's last resume's, else those it was
+    made with, else its config's ``torch_threads`` (runs made before meta.json recorded threads);
+    0 when nothing says."""
+    try:
+        meta = run.read_meta()
+    except DvfbError:
+        meta = {}
+    meta = meta if isinstance(meta, dict) else {}
+    for record in reversed(meta.get("resumes") or []):
+        if isinstance(record, dict) and isinstance(record.get("torch_threads"), int) and record["torch_threads"] > 0:
+            return record["torch_threads"]
+    made = (meta.get("machine") or {}).get("torch_threads") if isinstance(meta.get("machine"), dict) else None
+    if isinstance(made, int) and made > 0:
+        return made
+    configured = getattr(getattr(run, "config", None), "torch_threads", 0)
+    return configured if isinstance(configured, int) and configured > 0 else 0
+
+
+def resume_threads(run: RunDir, requested: int | None) -> int:
+    """Set the threads of a resume and return them (README.md, "Threads and progress"): a resume
+    computes with the threads the run computed with (:func:`recorded_threads`), so that it ends
+    bit-identical to an uninterrupted run, whatever ``OMP_NUM_THREADS`` the resuming shell has.
+    ``requested`` (a positive ``--torch-threads``) wins, and one line says that the numbers may
+    then differ; so does a machine with fewer CPUs than the run used."""
+    recorded = recorded_threads(run)
+    if requested:
+        threads = fit_threads(requested, f"--torch-threads {requested}")
+        if recorded and threads != recorded:
+            notify(f"[threads] resuming {run.path} with {threads} torch thread(s) instead of the {recorded} it ran "
+                   "with (--torch-threads): its numbers may differ from an uninterrupted run's")
+    elif recorded:
+        threads = fit_threads(recorded)
+        if threads != recorded:
+            notify(f"[threads] {run.path} ran with {recorded} torch threads, but this process may use "
+                   f"{threads} CPU(s); resuming with {threads}: its numbers may differ from an uninterrupted run's")
+    else:
+        threads = fit_threads(default_torch_threads())
     torch.set_num_threads(threads)
     return threads
 
