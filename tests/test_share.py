@@ -376,6 +376,15 @@ def test_an_exported_model_is_evaluated_from_the_command_line_beside_it(fb_maze_
     assert progress and progress[-1].startswith(f"[video {MAZE_TASK}] 20/20 steps (100%)")
     assert _files(export) == before  # the export's own files: never written
 
+    # dvfb status says what the evaluation directory is, not "pre-training: not started, 0/2000 frames".
+    capsys.readouterr()
+    assert main(["status", str(evaluation)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert f"made from the exported model {export.resolve()}" in lines[0]
+    assert lines[1] == ("  pre-training: none here; the evaluation directory of that exported model (dvfb zeroshot and "
+                        "dvfb video write its results here), holding its snapshot after 2000 frames")
+    assert not any("not started" in line for line in lines)
+
 
 def json_result_z(run: Path) -> list[float]:
     return json.loads((run / "zeroshot" / f"{MAZE_TASK}.json").read_text())["z"]

@@ -311,6 +311,52 @@ def test_debug_sweep_rerun_changes_nothing_and_other_grid_is_refused(tmp_path, c
     assert unit_state(sweep_dir, "fb_walker_s0", "pretrain")["attempts"] == 1
 
 
+def test_a_cell_with_results_but_no_checkpoint_or_summary_is_never_started_over(tmp_path):
+    run = tmp_path / "cell"
+    (run / "metrics").mkdir(parents=True)
+    assert units._continue_flags(run) == ["--overwrite"]  # stopped before its first checkpoint: nothing to lose
+    (run / "zeroshot").mkdir()
+    (run / "zeroshot" / "walker_walk.json").write_text("{}")
+    with pytest.raises(units.UnitFailed, match=r"holds results \(zeroshot\) but no checkpoint"):
+        units._continue_flags(run)
+    assert units._continue_flags(tmp_path / "new") == []
+
+
+@pytest.mark.e2e
+def test_a_damaged_result_is_never_counted_and_a_lost_summary_is_rebuilt(tmp_path, capsys):
+    """A zero-shot result cut short (a full disk, an editor) or another task's moved over it is set
+    aside and evaluated again; a finished cell whose pretrain_summary.json was deleted is done again
+    without a failure (its summary rebuilt from the final checkpoint), and nothing else runs."""
+    sweep_dir = tmp_path / "sweep"
+    args = sweep_args(sweep_dir, "debug", agents=("fb",), seeds=("0",), frames=400)
+    assert main(args) == 0
+    run = sweep_dir / "runs" / "fb_walker_s0"
+    walk, run_result = run / "zeroshot" / "walker_walk.json", run / "zeroshot" / "walker_run.json"
+    whole_walk = walk.read_bytes()
+    numbers = {k: v for k, v in json.loads(whole_walk).items() if k != "wall_clock_s"}
+    walk.write_bytes(whole_walk[: len(whole_walk) // 2])
+    run_result.write_bytes(whole_walk)  # walker_walk's result under walker_run's name
+    capsys.readouterr()
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    assert "1 unit(s) run, 1 already done" in out
+    assert f"{walk} is corrupt or unreadable" in err and "set aside as walker_walk.json.damaged" in err
+    assert "holds a result of 'walker_walk', not of 'walker_run'" in err
+    assert {k: v for k, v in json.loads(walk.read_text()).items() if k != "wall_clock_s"} == numbers  # again, the same
+    assert json.loads(run_result.read_text())["task"] == "walker_run"
+    assert (run / "zeroshot" / "walker_walk.json.damaged").stat().st_size == len(whole_walk) // 2
+    summary = run / "pretrain_summary.json"
+    first = json.loads(summary.read_text())
+    summary.unlink()
+    assert main(args) == 0
+    out, err = capsys.readouterr()
+    assert "0 unit(s) run, 2 already done" in out, out
+    assert "had lost its pretrain_summary.json; rebuilt it from its records" in err
+    rebuilt = json.loads(summary.read_text())
+    assert rebuilt["frames"] == first["frames"] == 400 and rebuilt["rebuilt"] is True
+    assert rebuilt["episodes"] == first["episodes"]
+
+
 # ---------------------------------------------------------------------------------------------
 # on the SLURM cluster
 

@@ -246,6 +246,27 @@ def test_sigterm_checkpoints_and_resume_equals_uninterrupted(tmp_path):
     assert records["train.jsonl"] and records == metric_records(split)
 
 
+def test_a_resume_of_a_finished_run_that_lost_its_summary_rebuilds_it(finished_run, tmp_path):
+    """Its last checkpoint is at the final step: the resume rebuilds pretrain_summary.json and trains
+    nothing, where it used to fail with "--frames 1000 is not beyond the checkpoint's step 1000"."""
+    run = shutil.copytree(finished_run, tmp_path / "fb")
+    first = json.loads((run / "pretrain_summary.json").read_text())
+    (run / "pretrain_summary.json").unlink()
+    snapshot = (run / "snapshots" / "snapshot_1000.pt").read_bytes()
+    done = run_cli(*pretrain_argv(run, 1000, "--resume"))
+    assert done.returncode == 0, done.stderr
+    assert "had lost its pretrain_summary.json; rebuilt it from the last checkpoint" in done.stderr
+    rebuilt = json.loads((run / "pretrain_summary.json").read_text())
+    assert rebuilt["rebuilt"] is True and (rebuilt["frames"], rebuilt["episodes"]) == (first["frames"], first["episodes"])
+    assert (run / "snapshots" / "snapshot_1000.pt").read_bytes() == snapshot  # nothing trained
+    # Without its final snapshot there is nothing to rebuild from: refused as before, one line.
+    (run / "pretrain_summary.json").unlink()
+    (run / "snapshots" / "snapshot_1000.pt").unlink()
+    refused = run_cli(*pretrain_argv(run, 1000, "--resume"))
+    assert refused.returncode == 2 and "is not beyond the checkpoint's step 1000" in refused.stderr
+    assert not (run / "pretrain_summary.json").exists()
+
+
 def _without_threads(argv: list[str]) -> list[str]:
     """``argv`` without its ``--torch-threads N``."""
     at = argv.index("--torch-threads")

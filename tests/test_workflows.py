@@ -268,6 +268,29 @@ def test_the_demo_ranks_dvfb_and_random_only_when_two_standard_errors_apart():
     assert table[-1].split() == ["walker_walk", "12.0", "±", "1.2", "1.0", "±", "0.6", "DVFB", "above", "random"]
 
 
+@pytest.mark.parametrize("flags, says", [
+    (["--gif-task", "walker_dance"], "--gif-task 'walker_dance' is not a walker task"),
+    (["--gif-task", "hopper_hop"], "--gif-task 'hopper_hop' is not a walker task"),
+])
+def test_the_demo_refuses_bad_input_up_front_and_creates_nothing(tmp_path: Path, flags, says):
+    out = tmp_path / "demo"
+    done = subprocess.run([sys.executable, "-m", "dvfb", "demo", "--out-dir", str(out), *flags],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and says in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert not out.exists()
+
+
+def test_the_demo_never_replaces_a_directory_it_did_not_make(tmp_path: Path):
+    mine = tmp_path / "demo" / "live_pretrain"
+    mine.mkdir(parents=True)
+    (mine / "notes.txt").write_text("mine")
+    done = subprocess.run([sys.executable, "-m", "dvfb", "demo", "--out-dir", str(tmp_path / "demo")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "does not look like a dvfb run directory" in done.stderr, done.stderr
+    assert sorted(p.name for p in (tmp_path / "demo").iterdir()) == ["live_pretrain"]
+    assert (mine / "notes.txt").read_text() == "mine"
+
+
 @pytest.mark.slow
 @pytest.mark.e2e
 def test_demo_runs_the_bundled_agent_a_gif_and_a_live_pretraining(tmp_path: Path):

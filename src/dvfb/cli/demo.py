@@ -13,6 +13,7 @@ import numpy as np
 from dvfb import envs
 from dvfb.cli.common import integer, progress_flag
 from dvfb.core.errors import ConfigError, DvfbError
+from dvfb.runs.directory import RunDir
 from dvfb.runs.export import is_export, unpack_export
 from dvfb.runs.presets import preset_config
 from dvfb.workflows.pretrain import pretrain
@@ -25,8 +26,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
     full protocol, as mean ± standard error with a verdict per task; a GIF of one task; then a short
     live pre-training that shows the pipeline (docs: README, "Two commands")."""
     out = Path(args.out_dir)
+    # Everything the demo will need is checked before it writes anything (README, "Two commands").
+    tasks = envs.tasks_of_domain("walker")
+    if args.gif_task not in tasks:
+        raise ConfigError(f"--gif-task {args.gif_task!r} is not a walker task (the bundled agent was pre-trained on "
+                          f"walker); choose from {', '.join(tasks)}")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out-dir {out} is a file; give a directory")
     bundled = bundled_demo_run()
-    agent_dir = out / "pretrained_dvfb_walker"
+    agent_dir, live = out / "pretrained_dvfb_walker", out / "live_pretrain"
+    for directory in (agent_dir, live):  # replaced on every demo, but only if a demo made them
+        RunDir.check_new(directory, overwrite=True)
+    config = preset_config("small", agent="dvfb", domain="walker", frames=args.frames, seed=0,
+                           seed_frames=min(1000, args.frames // 2), checkpoint_every=args.frames, log_every=500,
+                           replay_capacity=max(args.frames, 1000))  # the whole live run, not 1M transitions
     provenance = json.loads((bundled / "provenance.json").read_text())
     if agent_dir.exists():
         shutil.rmtree(agent_dir)
@@ -46,7 +59,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"{args.eval_episodes} evaluation episodes; random policy: {args.eval_episodes} episodes; "
           "mean ± standard error over the episodes")
     rows = []
-    for task in envs.tasks_of_domain("walker"):
+    for task in tasks:
         result = zeroshot(agent_dir, task, inference=inference, overwrite=True, progress=args.progress)
         random_returns = random_policy_return(task, args.eval_episodes, seed=0)
         rows.append((task, result["returns"], random_returns))
@@ -58,10 +71,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"[demo] {video['path']}: zero-shot {args.gif_task}, {video['frames']} frames")
     except (DvfbError, RuntimeError) as exc:  # rendering needs OpenGL; the rest of the demo does not
         print(f"[demo] no GIF: {exc}")
-    config = preset_config("small", agent="dvfb", domain="walker", frames=args.frames, seed=0,
-                           seed_frames=min(1000, args.frames // 2), checkpoint_every=args.frames, log_every=500,
-                           replay_capacity=max(args.frames, 1000))  # the whole live run, not 1M transitions
-    live = out / "live_pretrain"
     print(f"[demo] live pre-training: dvfb on walker for {config.frames} frames (small preset) into {live}")
     pretrain(config, live, overwrite=True, progress=args.progress, command=args.command_line)
     print(f"[demo] done: {out}/ (zero-shot results in {agent_dir}/zeroshot/, the live run in {live}/)")

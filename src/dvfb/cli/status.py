@@ -46,7 +46,13 @@ def _print(status: dict) -> None:
     origin = f", made from the exported model {status['exported_from']}" if status["exported_from"] else ""
     print(f"{status['path']}: {status['agent']} on {status['domain']}, {status['preset']} preset, seed "
           f"{status['seed']}{origin}")
-    print(f"  pre-training: {_progress_line(status)}")
+    if status["unpacked"]:
+        frames = ", ".join(str(f) for f in status["snapshots"])
+        what = ("the evaluation directory of that exported model (dvfb zeroshot and dvfb video write its results "
+                "here)" if status["exported_from"] else "an exported model unpacked into a run directory")
+        print(f"  pre-training: none here; {what}, holding its snapshot after {frames} frames")
+    else:
+        print(f"  pre-training: {_progress_line(status)}")
     metrics = _metrics_line(status)
     if metrics:
         print(f"  {metrics}")

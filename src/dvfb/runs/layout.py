@@ -38,6 +38,7 @@ from dvfb.core.errors import ConfigError, RunDirError
 from dvfb.core.files import read_json, write_json_atomic
 from dvfb.runs.checkpoints import latest_checkpoint, list_snapshots, load_checkpoint
 from dvfb.runs.directory import CONFIG_FILE, EXPORT_FORMAT, META_FILE, RunDir
+from dvfb.runs.metrics import last_metric_record
 from dvfb.runs.migrations import kind_from_config
 from dvfb.runs.records import Curve, FinetuneSummary, PretrainSummary, ZeroShotResult
 from dvfb.runs.run_config import FinetuneRunConfig, PretrainConfig, load_finetune_run_config, load_run_config
@@ -134,6 +135,23 @@ class PretrainRun(RunDir):
         done = self.finished_frames()
         return done is not None and done >= (self.config.frames if frames is None else frames)
 
+    def recovered_summary(self) -> PretrainSummary | None:
+        """The summary of a run that finished but lost its pretrain_summary.json (deleted by hand, a
+        half-copied run), rebuilt from what its end left: a train record at its last step, and its
+        final snapshot or a zero-shot result of that snapshot (a study's committed cell keeps no
+        snapshot); None when that is not all there."""
+        frames = self.config.frames
+        last = last_metric_record(self, "train")
+        if last is None or last["step"] != frames:
+            return None
+        evaluated = self.zeroshot_dir.is_dir() and any("@" not in p.stem for p in self.zeroshot_dir.glob("*.json"))
+        if frames not in self.snapshot_frames() and not evaluated:
+            return None
+        episode = last_metric_record(self, "episode")  # none before the first episode ends, none offline
+        count = episode.get("episode") if episode is not None else 0
+        return PretrainSummary(agent=self.config.agent, domain=self.config.domain, frames=frames,
+                               episodes=int(count) if isinstance(count, (int, float)) else None, rebuilt=True)
+
     def write_summary(self, summary: PretrainSummary) -> None:
         summary.write(self.summary_path)
 
@@ -204,14 +222,36 @@ class PretrainRun(RunDir):
     def read_zeroshot_result(self, task: str, snapshot: int | None = None,
                              error: type[Exception] = RunDirError) -> ZeroShotResult | None:
         path = self.zeroshot_result(task, snapshot)
-        return ZeroShotResult.read(path, error) if path.is_file() else None
+        return self._read_result(path, error) if path.is_file() else None
+
+    def damaged_zeroshot_result(self, task: str, snapshot: int | None = None) -> str | None:
+        """Why the result file of ``task`` at ``snapshot`` cannot be trusted (cut short by a full disk or
+        an editor, another task's or snapshot's result moved there, no return), None when it is
+        missing or whole."""
+        try:
+            self.read_zeroshot_result(task, snapshot)
+        except RunDirError as exc:
+            return str(exc)
+        return None
+
+    def _read_result(self, path: Path, error: type[Exception]) -> ZeroShotResult:
+        """A result file, which must be what its name says: its task's, of its snapshot."""
+        result = ZeroShotResult.read(path, error)
+        task, _, frames = path.stem.partition("@")
+        if result.task != task:
+            raise error(f"{path} holds a result of {result.task!r}, not of {task!r} as its name says (moved or "
+                        "edited by hand?)")
+        if frames and frames.isdigit() and result.snapshot_frames is not None and result.snapshot_frames != int(frames):
+            raise error(f"{path} holds the result of the snapshot after {result.snapshot_frames} frames, not {frames} "
+                        "as its name says (moved or edited by hand?)")
+        return result
 
     def zeroshot_results(self, error: type[Exception] = RunDirError) -> list[tuple[Path, ZeroShotResult]]:
         """The results of the final snapshot (``<task>.json``), by file name; earlier snapshots'
-        ``<task>@<frames>.json`` are not among them."""
+        ``<task>@<frames>.json`` are not among them. A damaged file is an ``error`` naming it."""
         if not self.zeroshot_dir.is_dir():
             return []
-        return [(path, ZeroShotResult.read(path, error)) for path in sorted(self.zeroshot_dir.glob("*.json"))
+        return [(path, self._read_result(path, error)) for path in sorted(self.zeroshot_dir.glob("*.json"))
                 if "@" not in path.stem and not path.name.startswith(".")]
 
     def snapshot_zeroshot_results(self, error: type[Exception] = RunDirError) -> list[tuple[Path, ZeroShotResult]]:
@@ -219,7 +259,7 @@ class PretrainRun(RunDir):
         ``<task>@<frames>.json``; each result records its snapshot's frames), by file name."""
         if not self.zeroshot_dir.is_dir():
             return []
-        return [(path, ZeroShotResult.read(path, error)) for path in sorted(self.zeroshot_dir.glob("*.json"))
+        return [(path, self._read_result(path, error)) for path in sorted(self.zeroshot_dir.glob("*.json"))
                 if not path.name.startswith(".")]
 
     # Fine-tuning runs ----------------------------------------------------------------------------

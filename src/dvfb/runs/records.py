@@ -76,6 +76,7 @@ class PretrainSummary(Record):
     """What a finished pre-training reports (``frames``: the step it finished at)."""
 
     kind: ClassVar[str] = "pretrain_summary"
+    optional: ClassVar[tuple[str, ...]] = ("rebuilt",)
     required: ClassVar[dict] = {"frames": int}
 
     agent: str | None = None
@@ -86,6 +87,7 @@ class PretrainSummary(Record):
     frames_per_s: float | None = None
     resumed_from: int | None = None
     device: str | None = None
+    rebuilt: bool | None = None  # True: remade from the last checkpoint after the file was lost
 
 
 @dataclass(kw_only=True)
@@ -93,7 +95,7 @@ class FinetuneSummary(Record):
     """What a finished fine-tuning reports."""
 
     kind: ClassVar[str] = "finetune_summary"
-    optional: ClassVar[tuple[str, ...]] = ("zero_shot_success_rate", "final_success_rate")
+    optional: ClassVar[tuple[str, ...]] = ("zero_shot_success_rate", "final_success_rate", "rebuilt")
     required: ClassVar[dict] = {"frames": int}
 
     task: str | None = None
@@ -103,6 +105,7 @@ class FinetuneSummary(Record):
     final_return: float | None = None
     zero_shot_success_rate: float | None = None
     final_success_rate: float | None = None
+    rebuilt: bool | None = None  # True: remade from the last checkpoint after the file was lost
 
 
 @dataclass(kw_only=True)

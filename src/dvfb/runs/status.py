@@ -70,7 +70,11 @@ def run_status(path: str | os.PathLike) -> dict:
                   "zero_shot": {result.task: {"mean_return": result.mean_return, "eval_episodes": result.eval_episodes}
                                 for _, result in run.zeroshot_results()},
                   "finetune": [run_status(child.path) for child in run.finetune_runs()],
-                  "exported_from": (run.exported_from() or {}).get("export")}
+                  "exported_from": (run.exported_from() or {}).get("export"),
+                  # Made from an exported model (dvfb demo's agent, an EXPORT.eval directory): a
+                  # snapshot and nothing trained here.
+                  "unpacked": (run.finished_frames() is None and not run.metrics_dir.exists()
+                               and latest_checkpoint(run) is None and bool(run.snapshot_frames()))}
         return status
     if kind == FINETUNE:
         run = FinetuneRun.open(path)

@@ -195,7 +195,26 @@ def missing_zeroshot_tasks(sweep: SweepDir, config: SweepConfig, cell: Cell, sna
     """The zero-shot tasks of the cell without a result for the snapshot (default: the final one)."""
     run = cell_run(sweep, config, cell)
     frames = run.config.frames if snapshot is None else snapshot
-    return [t for t in spec.zeroshot_tasks(config, cell) if not run.zeroshot_result(t, frames).is_file()]
+    return [t for t in spec.zeroshot_tasks(config, cell)
+            if not run.zeroshot_result(t, frames).is_file() or run.damaged_zeroshot_result(t, frames) is not None]
+
+
+def set_aside_damaged_results(sweep: SweepDir, config: SweepConfig, unit: Unit) -> list[str]:
+    """Before a zero-shot unit runs: each damaged result of its cells (a file cut short, moved or
+    edited, :meth:`~dvfb.runs.layout.PretrainRun.damaged_zeroshot_result`) renamed to
+    ``<file>.damaged`` beside it, so that the unit computes it again and nothing is lost; returns
+    one line per file."""
+    lines = []
+    for member in grouped(config, unit):
+        run = cell_run(sweep, config, member)
+        frames = run.config.frames if unit.snapshot is None else unit.snapshot
+        for task in spec.zeroshot_tasks(config, member):
+            why = run.damaged_zeroshot_result(task, frames)
+            if why is not None:
+                path = run.zeroshot_result(task, frames)
+                path.replace(path.with_name(path.name + ".damaged"))
+                lines.append(f"[sweep] {why}: not counted; set aside as {path.name}.damaged and evaluated again")
+    return lines
 
 
 def finetune_run(sweep: SweepDir, config: SweepConfig, cell: Cell, task: str) -> FinetuneRun:
@@ -215,10 +234,36 @@ def is_done(sweep: SweepDir, config: SweepConfig, unit: Unit) -> bool:
 
 def _continue_flags(run_dir: Path) -> list[str]:
     """--resume from the latest checkpoint; --overwrite for a run stopped before its first one
-    (its directory holds nothing that a restart would lose)."""
+    (its directory holds nothing that a restart would lose). A directory with results (snapshots,
+    zero-shot results, fine-tuning runs) but neither a checkpoint nor a summary is never
+    overwritten: that is a person's edit to look at, not a run to redo."""
     if latest_checkpoint(run_dir) is not None:
         return ["--resume"]
-    return ["--overwrite"] if run_dir.exists() else []
+    if not run_dir.exists():
+        return []
+    kept = [name for name in ("snapshots", "zeroshot", "finetune") if any((run_dir / name).glob("*"))]
+    if kept:
+        raise UnitFailed(f"{run_dir} holds results ({', '.join(kept)}) but no checkpoint and no finished summary, so "
+                         "the sweep would have to start it over; move the directory away to do that, or restore "
+                         "its pretrain_summary.json")
+    return ["--overwrite"]
+
+
+def recover_summaries(sweep: SweepDir, config: SweepConfig, unit: Unit) -> list[str]:
+    """Before a pre-training unit runs: each of its cells that finished but lost its
+    pretrain_summary.json gets it rebuilt (:meth:`~dvfb.runs.layout.PretrainRun.recovered_summary`)
+    instead of being trained again; returns one line per cell."""
+    lines = []
+    for member in grouped(config, unit):
+        run = cell_run(sweep, config, member)
+        if run.summary_path.exists() or not run.path.is_dir():
+            continue
+        summary = run.recovered_summary()
+        if summary is not None:
+            run.write_summary(summary)
+            lines.append(f"[sweep] {run.path} had finished at {summary.frames} frames but had lost its "
+                         f"{run.summary_path.name}; rebuilt it from its records (without wall-clock figures)")
+    return lines
 
 
 def command(sweep: SweepDir, config: SweepConfig, unit: Unit, torch_threads: int) -> list[str]:
@@ -416,6 +461,8 @@ def run_unit(sweep_path: str, cell_name: str, unit_name: str, torch_threads: int
     sweep = SweepDir(sweep_path)
     config = spec.load_stored(sweep.path)
     unit = find_unit(config, cell_name, unit_name)
+    for line in recover_summaries(sweep, config, unit) if unit.phase == "pretrain" else ():
+        print(line, file=sys.stderr, flush=True)
     if is_done(sweep, config, unit):
         if (read_state(sweep, unit) or {}).get("state") != "done":
             _write_state(sweep, unit, state="done")
@@ -424,6 +471,9 @@ def run_unit(sweep_path: str, cell_name: str, unit_name: str, torch_threads: int
         raise UnitInterrupted(f"{unit.key} was not started: the sweep is stopping")
     log = sweep.log_path(unit)
     log.parent.mkdir(parents=True, exist_ok=True)
+    damaged = set_aside_damaged_results(sweep, config, unit) if unit.phase == "zeroshot" else []
+    for line in damaged:
+        print(line, file=sys.stderr, flush=True)
     try:
         argv = command(sweep, config, unit, torch_threads)
     except UnitFailed as exc:
@@ -432,7 +482,7 @@ def run_unit(sweep_path: str, cell_name: str, unit_name: str, torch_threads: int
     attempts = (read_state(sweep, unit) or {}).get("attempts", 0) + 1
     with open(log, "a", encoding="utf-8") as file:
         file.write(f"\n=== attempt {attempts} on {socket.gethostname()} at {time.strftime('%Y-%m-%d %H:%M:%S')}: "
-                   f"dvfb {' '.join(argv)}\n")
+                   f"dvfb {' '.join(argv)}\n" + "".join(f"{line}\n" for line in damaged))
     offset = log.stat().st_size
     _write_state(sweep, unit, state="running", attempts=attempts, started=time.time(), ended=None,
                  exit_code=None, reason=None, log=str(log), host=socket.gethostname(), pid=os.getpid(),

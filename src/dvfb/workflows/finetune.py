@@ -375,11 +375,21 @@ class FinetuneSession(RunSession):
     def finish(self) -> None:
         if self.finetuner_cls.records_episodes:
             self._write_curve()  # the episodes that ended after the last evaluation
-        curve = self.curve
-        self.run.write_summary(FinetuneSummary(
-            task=self.task, frames=self.step, wall_clock_s=time.time() - self.started,
-            zero_shot_return=curve[0]["mean_return"], final_return=curve[-1]["mean_return"],
-            zero_shot_success_rate=curve[0].get("success_rate"), final_success_rate=curve[-1].get("success_rate")))
+        self.run.write_summary(_summary(self.task, self.step, self.curve, wall_clock_s=time.time() - self.started))
+
+    def lost_summary(self, state: dict) -> FinetuneSummary | None:
+        curve = state.get("curve")
+        if not curve or not self.run.curve_path.is_file():
+            return None
+        return _summary(self.task, state["step"], curve, rebuilt=True)
+
+
+def _summary(task: str, frames: int, curve: list[dict], **fields) -> FinetuneSummary:
+    """A finished fine-tuning's summary: its first (zero-shot) and last evaluations."""
+    return FinetuneSummary(
+        task=task, frames=frames, zero_shot_return=curve[0]["mean_return"], final_return=curve[-1]["mean_return"],
+        zero_shot_success_rate=curve[0].get("success_rate"), final_success_rate=curve[-1].get("success_rate"),
+        **fields)
 
 
 def _copy_episodes(source: ReplayBuffer, target: ReplayBuffer, z: torch.Tensor | None) -> None:

@@ -346,6 +346,12 @@ class PretrainSession(RunSession):
     def fits(self, state: dict) -> bool:
         return state.get("agent") == self.config.agent
 
+    def lost_summary(self, state: dict) -> PretrainSummary | None:
+        if self.total not in self.run.snapshot_frames():
+            return None  # the final snapshot, what every later command reads, is gone too
+        summary = self.run.recovered_summary()
+        return None if summary is None else replace(summary, episodes=state.get("episode"), device=str(self.device))
+
     def describe_kind(self) -> str:
         return f"{self.config.agent} pre-training"
 

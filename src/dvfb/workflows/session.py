@@ -105,6 +105,14 @@ class RunSession:
             raise CheckpointError(f"{run.path}: the latest checkpoint is not a {self.describe_kind()} checkpoint")
         check_resume_format(state, run.path)
         if state["step"] >= self.total:
+            summary = self.lost_summary(state) if state["step"] == self.total else None
+            if summary is not None:  # it finished, then lost its summary (deleted by hand, a half-copied run)
+                run.write_summary(summary)
+                notify(f"[{self.tag}] {run.path} had finished at {self.total} frames but had lost its "
+                       f"{run.summary_path.name}; rebuilt it from the last checkpoint (without wall-clock figures); "
+                       "nothing to resume")
+                self.finished = True
+                return
             raise ConfigError(f"{self.budget_flag} {self.total} is not beyond the checkpoint's step {state['step']}; "
                               f"pass a larger {self.budget_flag} to extend the run")
         log = getattr(self.config, "log", None)
@@ -124,6 +132,12 @@ class RunSession:
     def fits(self, state: dict) -> bool:
         """Whether a checkpoint of the right kind is this run's (pre-training: of its method)."""
         return True
+
+    def lost_summary(self, state: dict):
+        """The summary of a run whose last checkpoint ``state`` is at its final step but whose summary
+        file is gone, rebuilt from that checkpoint; None when the run's results are not all there
+        (then the resume is refused as one beyond the budget)."""
+        return None
 
     def describe_kind(self) -> str:
         return self.phase
