@@ -1,6 +1,6 @@
 """The ``dvfb`` command line, one module per command: tasks and agents (:mod:`~dvfb.cli.info`), pretrain,
 zeroshot, finetune, supervised (the reference), random-policy, demo, sweep, status, report, the analyses
-(analyze-value, analyze-exploration), video, dataset (export and relabel), export and push (:mod:`~dvfb.cli.share`).
+(analyze-value, analyze-exploration), bands (the reference bands of dvfb status), video, dataset (export and relabel), export and push (:mod:`~dvfb.cli.share`).
 
 Every option of the typed run configuration is a flag (nested fields as ``--fb.hidden-dim``), shown
 with its default in ``--help``. Errors caused by input (unknown task, bad run directory, mismatched
@@ -16,15 +16,15 @@ import sys
 
 from dvfb.core.version import __version__
 from dvfb.agents import agent_names
-from dvfb.cli import (analyze, dataset, demo, finetune, info, pretrain, random_policy, report, share, status,
+from dvfb.cli import (analyze, bands, dataset, demo, finetune, info, pretrain, random_policy, report, share, status,
                       supervised, sweep, video, zeroshot)
 from dvfb.cli.common import Formatter, Parser, unknown_option_message
 from dvfb.core.errors import DvfbError, RunInterrupted
 from dvfb.training.progress import progress_interval
 
 # The order of `dvfb --help`.
-COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo, sweep, status, report, analyze, video,
-            dataset, share)
+COMMANDS = (info, pretrain, zeroshot, finetune, supervised, random_policy, demo, sweep, status, bands, report, analyze,
+            video, dataset, share)
 
 
 def build_parser(agent: str = "dvfb") -> argparse.ArgumentParser:

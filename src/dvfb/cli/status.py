@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import argparse
 
+from pathlib import Path
+
+from dvfb.analysis import bands
+from dvfb.analysis.common import method_name
 from dvfb.cli.common import Formatter
+from dvfb.core.errors import ConfigError
+from dvfb.runs.layout import PretrainRun
 from dvfb.runs.status import run_status
 from dvfb.training.progress import format_eta
 
@@ -36,7 +42,18 @@ def _metrics_line(status: dict) -> str | None:
     return f"newest metrics (step {status['metrics_step']}): {shown}"
 
 
-def _print(status: dict) -> None:
+def _health(status: dict, reference) -> list[str]:
+    """The verdict lines of a pre-training run's newest evaluation while pre-training (docs/health.md)."""
+    run = PretrainRun.open(status["path"])
+    found = bands.run_verdicts(run, reference)
+    if found:
+        return [f"  health: {v.line()}" for v in found]
+    if not run.config.eval_every:
+        return ["  health: no evaluations while pre-training (--eval-every 0); dvfb zeroshot evaluates its snapshots"]
+    return [f"  health: no evaluation yet (the first at {run.config.eval_every:,} frames, --eval-every)"]
+
+
+def _print(status: dict, reference=None) -> None:
     if status["kind"] == "export":
         print(f"{status['description']}: an exported model (dvfb zeroshot and dvfb video evaluate it)")
         return
@@ -59,17 +76,36 @@ def _print(status: dict) -> None:
     snapshots = ", ".join(str(f) for f in status["snapshots"]) or "none"
     checkpoint = status["checkpoint"] if status["checkpoint"] is not None else "none"
     print(f"  resume checkpoint: {checkpoint}; snapshots: {snapshots}")
+    if not status["unpacked"]:
+        for line in _health(status, reference):
+            print(line)
     if status["zero_shot"]:
         print("  zero-shot: " + ", ".join(f"{task} {r['mean_return']:.1f} ({r['eval_episodes']} episodes)"
                                           for task, r in sorted(status["zero_shot"].items())))
     for child in status["finetune"]:
-        _print(child)
+        _print(child, reference)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
     statuses = [run_status(path) for path in args.run]  # every path checked before anything is printed
+    reference = bands.load_bands(args.bands)
+    if args.plot is not None:
+        pretraining = [s for s in statuses if s["kind"] == "pretrain"]
+        if len(pretraining) != 1:
+            raise ConfigError("--plot draws one pre-training run: give one run directory")
+        plot_path = Path(args.plot)
+        if plot_path.suffix.lower() != ".png":
+            raise ConfigError(f"--plot {plot_path}: give a .png file")
+        if plot_path.exists() and not args.overwrite:
+            raise ConfigError(f"{plot_path} exists; pass --overwrite to replace it")
     for status in statuses:
-        _print(status)
+        _print(status, reference)
+    if args.plot is not None:
+        run = PretrainRun.open(pretraining[0]["path"])
+        config = run.config
+        out = bands.plot(str(run.path), method_name(config), config.domain, config.preset,
+                         bands.read_eval_records(run.path), reference, plot_path)
+        print(f"evaluations over the reference bands: {out}")
     return 0
 
 
@@ -80,6 +116,13 @@ def register(sub, agent: str) -> None:
                     "state (finished, running, stopped, not started), the frames it reached of its budget, the rate "
                     "of its newest training record (frames/s since the record before it) and an ETA while it runs, "
                     "its newest metrics, its resume checkpoint and snapshots, its zero-shot results and its "
-                    "fine-tuning runs. Reads only; a sweep's cells: dvfb sweep status.")
+                    "fine-tuning runs, and the health of its newest evaluation while pre-training against its method's "
+                    "reference band (docs/health.md). Reads only; a sweep's cells: dvfb sweep status.")
     p.add_argument("run", nargs="+", help="run directory (pre-training or fine-tuning), or an exported model")
+    p.add_argument("--bands", default=None, metavar="FILE.json",
+                   help="reference bands to read the evaluations against (dvfb bands; default: the package's, from "
+                        "docs/results/cpu_100k)")
+    p.add_argument("--plot", default=None, metavar="OUT.png",
+                   help="draw the run's evaluations while pre-training per task over its band")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --plot file")
     p.set_defaults(func=cmd_status)

@@ -93,18 +93,27 @@ class MetricsLogger:
 
     def log(self, step: int, metrics: Mapping[str, Any], prefix: str = "train") -> None:
         """Record ``metrics`` (floats or 0-d tensors) at ``step`` under ``prefix``."""
-        if "step" in metrics:
-            raise ValueError("'step' is reserved in metrics records; pass it as the step argument")
         values = {str(name): _scalar(name, value) for name, value in metrics.items()}
+        self._write(step, values, values, prefix)
+
+    def log_row(self, step: int, row: Mapping[str, Any], scalars: Mapping[str, Any], prefix: str) -> None:
+        """Record ``row`` (any JSON fields: a task's name, a skill vector) at ``step`` in
+        ``metrics/<prefix>.jsonl``, and its ``scalars`` in TensorBoard and the sink as
+        ``<prefix>/<name>`` (the evaluations while pre-training: ``eval/<task>/return``)."""
+        self._write(step, row, {str(name): _scalar(name, value) for name, value in scalars.items()}, prefix)
+
+    def _write(self, step: int, row: Mapping[str, Any], values: dict[str, float], prefix: str) -> None:
+        if "step" in row:
+            raise ValueError("'step' is reserved in metrics records; pass it as the step argument")
         step = int(step)
         file = self._file(prefix)
-        file.write(json.dumps({"step": step, **values}) + "\n")
+        file.write(json.dumps({"step": step, **row}) + "\n")
         # Flushed per call so that a crash loses at most the line being written.
         file.flush()
         if self._writer is not None:
             for name, value in values.items():
                 self._writer.add_scalar(f"{prefix}/{name}", value, global_step=step)
-        if self._sink is not None:
+        if self._sink is not None and values:
             self._sink.log(step, prefix, values)
 
     def flush(self) -> None:

@@ -2,7 +2,8 @@
 format version (docs/architecture.md, "Run directories").
 
 * **Run configs** (``config.json``): a field that moved into a method's section since it was
-  written is moved there (:func:`migrate_run_config`); a fine-tuning run of the method's own
+  written is moved there, and a config from before the evaluations while pre-training records
+  ``eval_every`` 0 (:func:`migrate_run_config`); a fine-tuning run of the method's own
   fine-tuner, which recorded no protocol (or an empty one), records its name
   (:func:`migrate_finetune_run_config`).
 * **Run kinds**: runs written before ``meta.json`` recorded the kind of run are told apart by
@@ -46,6 +47,9 @@ def migrate_run_config(data: dict, spec: Any) -> dict:
                 section, key = new.split(".", 1)
                 data[section] = {**data.get(section, {}), key: value}
     data.pop("update_z_every", None)  # methods without skills ignored the global period
+    # Written before the evaluations while pre-training existed: the run never evaluated, and a
+    # resume keeps it so unless --eval-every asks (the other eval_* fields take their defaults).
+    data.setdefault("eval_every", 0)
     return data
 
 

@@ -47,6 +47,8 @@ SMALL_PRESET: dict = {
     "replay_capacity": 1_000_000,
     "snapshot_frames": [],
     "checkpoint_every": 20_000,
+    # Ten evaluations over the preset's 100k frames, at about 2-6% of its wall clock (docs/health.md).
+    "eval_every": 10_000,
     "inference": {"eval_episodes": 10},
     "finetune": {"frames": 20_000, "eval_every": 5_000, "eval_episodes": 5, "seed_frames": 2000},
 }

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dvfb import envs
 from dvfb.agents import get_spec
 from dvfb.core.config import flag_name, from_dict, param, require_updates, seed_param
 from dvfb.core.errors import ConfigError
@@ -75,6 +76,16 @@ class PretrainConfig:
     checkpoint_every: int = param(100_000, "Write a resume checkpoint at the first episode end after this many steps.",
                                   at_least=1)
     log_every: int = param(1000, "Read metrics back from the device and log them every this many steps.", at_least=1)
+    eval_every: int = param(100_000, "Frames between zero-shot evaluations of the current networks while pre-training, "
+                            "on small budgets by the method's protocol (metrics/eval.jsonl; docs/health.md); 0: none. "
+                            "Training is unchanged by them (their own random streams and environments).", at_least=0)
+    eval_tasks: list[str] = param(["all"], "Tasks of the evaluations while pre-training; all: every task of the domain.")
+    eval_samples: int = param(10_000, "Newest pre-training transitions the evaluations keep with their physics states: "
+                              "each task's reward is computed on them exactly and z_r inferred from them (the methods "
+                              "that infer from rewards).", at_least=1)
+    eval_skill_steps: int = param(2000, "Reward-labelled steps per task in which an evaluation of a skill-discovery "
+                                  "method tries a prior skill per episode and keeps the best.", at_least=1)
+    eval_episodes: int = param(2, "Mean-action episodes per task of each evaluation while pre-training.", at_least=1)
     perf: PerfConfig = field(default_factory=PerfConfig,
                              metadata={"help": "How the pre-training updates execute (precision, compilation)."})
     log: LogConfig = field(default_factory=LogConfig,
@@ -84,6 +95,11 @@ class PretrainConfig:
     def check(self) -> None:
         """Relations between fields (ranges are checked per field)."""
         self._check_neighbours()
+        if self.eval_tasks != ["all"] and self.domain in envs.DOMAINS:
+            for task in self.eval_tasks:
+                if envs.TASKS.get(task) is None or envs.TASKS[task].domain != self.domain:
+                    raise ConfigError(f"--eval-tasks: {task!r} is not a task of {self.domain} (its tasks: "
+                                      f"{', '.join(envs.tasks_of_domain(self.domain))}; or all)")
         if self.dataset:
             if self.replay.record_physics:
                 raise ConfigError("--replay.record-physics records what an online run collects; an offline run "

@@ -10,11 +10,13 @@ import socket
 import time
 from pathlib import Path
 
+from dvfb.analysis import bands
 from dvfb.analysis.common import AnalysisError
 from dvfb.analysis.report import make_report
 from dvfb.core.config import format_value, to_dict
 from dvfb.core.errors import ConfigError, DvfbError
 from dvfb.runs import LOCK_FILE, RunLock, last_metric_record, read_json, recent_rate, write_json_atomic
+from dvfb.runs.layout import PretrainRun
 from dvfb.runs.machine import cores
 from dvfb.sweep import spec
 from dvfb.sweep.executors import EXECUTORS, Outcome, SlurmError, _sbatch_options, alive_jobs
@@ -280,8 +282,10 @@ def _format_seconds(seconds: float) -> str:
 
 
 def cell_status(sweep: SweepDir, config: SweepConfig, cell: Cell, jobs: dict[str, str] | None,
-                recorded: dict[str, str], sweep_active: bool = False) -> dict:
-    """State (done / running / queued / failed / stopped), frames, ETA and a note of one cell."""
+                recorded: dict[str, str], sweep_active: bool = False, reference: bands.Bands | None = None) -> dict:
+    """State (done / running / queued / failed / stopped), frames, ETA, the health of its newest
+    evaluation while pre-training against ``reference`` (docs/health.md; default: the package's
+    bands) and a note of one cell."""
     units = units_of(config, cell)
     states = {u.name: read_state(sweep, u) or {} for u in units}
     leader = group_of(config, cell)[0]
@@ -321,8 +325,11 @@ def cell_status(sweep: SweepDir, config: SweepConfig, cell: Cell, jobs: dict[str
         state = "queued"
         note = "" if sweep_active else "not started; run the sweep command to continue"
     phases = f"{sum(done)}/{len(units)}"
+    run = sweep.run_path(cell)
+    health = bands.summary(bands.run_verdicts(PretrainRun(run, spec.cell_config(config, cell)), reference)) \
+        if (run / "metrics" / "eval.jsonl").is_file() else "-"
     return {"cell": cell.name, "state": state, "frames": frames, "target": target, "eta": eta,
-            "units_done": phases, "note": note}
+            "units_done": phases, "health": health, "note": note}
 
 
 def status(path: Path) -> tuple[list[dict], str | None]:
@@ -342,13 +349,14 @@ def status(path: Path) -> tuple[list[dict], str | None]:
     # A live sweep process (it holds the sweep directory's lock) will start the waiting units;
     # SLURM jobs of a sweep whose submitter was killed are seen through squeue.
     active = RunLock.holder(sweep.path) is not None or bool(jobs)
-    return [cell_status(sweep, config, cell, jobs, recorded, active) for cell in spec.cells(config)], warning
+    reference = bands.load_bands()
+    return [cell_status(sweep, config, cell, jobs, recorded, active, reference) for cell in spec.cells(config)], warning
 
 
 def format_status(rows: list[dict]) -> str:
-    header = ("cell", "state", "frames", "ETA", "units done", "note")
-    table = [(r["cell"], r["state"], f"{r['frames']}/{r['target']}", r["eta"] or "-", r["units_done"], r["note"])
-             for r in rows]
+    header = ("cell", "state", "frames", "ETA", "units done", "health", "note")
+    table = [(r["cell"], r["state"], f"{r['frames']}/{r['target']}", r["eta"] or "-", r["units_done"], r["health"],
+              r["note"]) for r in rows]
     widths = [max(len(str(row[i])) for row in [header, *table]) for i in range(len(header) - 1)]
     lines = ["  ".join(str(c).ljust(w) for c, w in zip(row[:-1], widths)) + "  " + row[-1] for row in [header, *table]]
     counts = {s: sum(r["state"] == s for r in rows) for s in ("done", "running", "queued", "failed", "stopped")}

@@ -58,6 +58,7 @@ from dvfb.training.progress import Progress, notify, progress_bars
 from dvfb.training.rollout import Lane, rollout
 from dvfb.training.seeding import seed_everything
 from dvfb.workflows.group import Group, TrainingSteps, check_lockstep
+from dvfb.workflows.pretrain_evaluation import PretrainEvaluation
 from dvfb.workflows.processes import run_in_processes, shares, threads_per_process
 from dvfb.workflows.resources import (check_memory, check_replay, check_task_in_domain, learner_state_bytes,
                                       resume_threads, setup_torch)
@@ -216,6 +217,10 @@ def _run(configs, paths, parts, resume, overwrite, command, dataset, dataset_inf
         observers.insert(0, ReplayWriter(group.lanes, [s.replay for s in sessions],
                                          physics=[s.lane.env.unwrapped.physics_state if s.columns else None
                                                   for s in sessions]))
+        if sessions[0].evaluation is not None and sessions[0].evaluation.window is not None:
+            # The evaluations' own window of the newest transitions with their physics states.
+            observers.insert(1, ReplayWriter(group.lanes, [s.evaluation.window for s in sessions], store_skill=False,
+                                             physics=[s.evaluation.physics for s in sessions]))
     try:
         with checkpoints:
             step = rollout(group.lanes, group.policy if group.lanes else None, observers, start=group.step,
@@ -325,7 +330,10 @@ class PretrainSession(RunSession):
     tag = "pretrain"
     budget_flag = "--frames"
     # log: where the metrics are sent besides the run directory (docs/methods.md, "Logging to Weights & Biases").
-    resumable = ("frames", "device", "torch_threads", "processes", "log_every", "perf.compile", "perf.cuda_graphs", "log")
+    # eval_*: the evaluations while pre-training (docs/health.md), which training never reads; not
+    # eval_samples, the size of the window a checkpoint holds.
+    resumable = ("frames", "device", "torch_threads", "processes", "log_every", "perf.compile", "perf.cuda_graphs", "log",
+                 "eval_every", "eval_tasks", "eval_episodes", "eval_skill_steps")
 
     def __init__(self, config, run_path, resume, overwrite, command, rng, env, agent, episode_length, columns,
                  dataset=None, dataset_info=None):
@@ -375,12 +383,23 @@ class PretrainSession(RunSession):
         self.lane = None if offline else Lane(self.env, self.rng, reset_seed=None if state is not None else config.seed,
                                               reward_key="task_reward")
         episode = self.lane.state if self.lane is not None else None
+        self.evaluation = None
+        if config.eval_every and offline:
+            notify(f"[eval] {self.run.path}: an offline run is not evaluated while it trains (--eval-every is for online "
+                   "runs); dvfb zeroshot evaluates its snapshots")
+        elif config.eval_every:
+            self.evaluation = PretrainEvaluation(config, agent.obs_dim, agent.action_dim, self.env, agent.device)
         if state is not None:
             try:
                 agent.load_training_state(migrate_training_state(config.agent, state["agent_state"]))
                 if not offline:
                     self.replay.load_state_dict(state["replay"])
                 self.restore(state, episode)
+                if self.evaluation is not None:
+                    self.evaluation.load_state_dict(state.get("evaluation"))
+                    if state.get("evaluation") is None and episode is not None and not episode.episode_start:
+                        # Evaluations begin with this resume, mid-episode: the window starts here.
+                        self.evaluation.start_window(episode.obs)
             except (KeyError, TypeError, ValueError, RuntimeError) as exc:
                 raise CheckpointError(f"cannot resume {self.run.path}: the checkpoint does not fit this run ({exc})") \
                     from exc
@@ -408,6 +427,8 @@ class PretrainSession(RunSession):
             extra["dataset"] = self.fingerprint
         else:
             extra["replay"] = self.replay.state_dict()
+        if self.evaluation is not None:
+            extra["evaluation"] = self.evaluation.state_dict()
         return extra
 
     def snapshot(self, t: int) -> dict:
@@ -435,6 +456,22 @@ class PretrainSession(RunSession):
         if t in self.snapshots:
             self.window.check()  # no snapshot of a non-finite learner
             save_snapshot(self.run, self.snapshot(t), snapshot_name(t))
+        if self.evaluation is not None and self.evaluation.due(t):
+            self.evaluate(t)
+
+    def evaluate(self, t: int) -> None:
+        """The zero-shot evaluation of the current networks at step ``t`` (docs/health.md): one record
+        per task in metrics/eval.jsonl, TensorBoard and W&B, and one line."""
+        modules = {k: m.state_dict() for k, m in self.learner.pretrained_modules().items()}
+        if self.index is not None:
+            modules = member_slice(modules, self.index)
+        records = self.evaluation.run(t, modules, self.learner)
+        for record in records:
+            self.logger.log_row(t, record, {f"{record['task']}/return": record["return"]}, prefix="eval")
+        if records:
+            notify(f"[eval] {self.run.path} at {t} frames: "
+                   + ", ".join(f"{r['task']} {r['return']:.1f}" for r in records)
+                   + f" ({records[0]['episodes']} episodes each, {records[0]['seconds']:.1f} s)")
 
     def after_episode(self, t: int) -> None:
         ended = self.lane.state
