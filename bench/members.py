@@ -261,8 +261,12 @@ def _pretrain_cmd(agent, args, frames, threads, run_dir, seeds=None, processes=1
     return cmd + ["--seeds", ",".join(map(str, seeds)), "--run-dir", str(run_dir), "--processes", str(processes)]
 
 
-def _timed(cmds: list[list[str]], at_once: int, threads: int) -> float:
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+def _timed(cmds: list[list[str]], at_once: int, threads: int | None) -> float:
+    """Wall clock of the commands, ``at_once`` at a time, with ``OMP_NUM_THREADS`` = ``threads``;
+    None: without it (a user's shell, the threads are the commands' own flags)."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    if threads is not None:
+        env["OMP_NUM_THREADS"] = str(threads)
     start = time.perf_counter()
     pending = list(cmds)
     running: list[subprocess.Popen] = []

@@ -6,9 +6,11 @@ error is the command's one line."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -17,6 +19,7 @@ import torch
 
 from dvfb.core.errors import CheckpointError, ConfigError
 from dvfb.runs import RunDir, load_snapshot
+from dvfb.runs.machine import cores
 from dvfb.workflows.pretrain import pretrain
 from dvfb.workflows.processes import shares, threads_per_process
 from tiny import start_cli, tiny_flags, tiny_run_config, tree_bytes
@@ -221,3 +224,54 @@ def test_a_killed_share_stops_the_group_in_one_line_and_the_group_resumes_exactl
     _out, err = whole.communicate(timeout=600)
     assert whole.returncode == 0, err
     _assert_same_snapshots(cut, [tmp_path / f"whole_s{s}" for s in (0, 1)], 4000)
+
+
+def test_a_groups_default_schedule_is_single_thread_shares_one_per_cpu_up_to_one_per_member(monkeypatch):
+    from dvfb.workflows import processes
+
+    monkeypatch.setattr(processes, "cores", lambda: 2)
+    assert processes.group_schedule(4, 0, 0) == (2, 1)  # no flag: one single-thread share per CPU
+    assert processes.group_schedule(1, 0, 0) == (1, 0)  # a run: in this process
+    monkeypatch.setattr(processes, "cores", lambda: 16)
+    assert processes.group_schedule(4, 0, 0) == (4, 1)  # up to one per member
+    assert processes.group_schedule(4, 0, 0, cuda=True) == (1, 0)  # one process on a GPU
+    assert processes.group_schedule(4, 0, 2) == (1, 0)  # --torch-threads alone: one process with them
+    assert processes.group_schedule(4, 2, 8) == (2, 4)  # --processes: they share the threads
+
+
+# The same command without a thread flag: what a user who trusts the defaults types.
+DEFAULTS = [arg for k, arg in enumerate(PRETRAIN) if arg != "--torch-threads" and PRETRAIN[k - 1] != "--torch-threads"]
+
+
+@pytest.mark.slow
+def test_a_default_group_records_its_schedule_and_resumes_bit_identical_from_another_shell(tmp_path):
+    """No --processes, no --torch-threads, no OMP_NUM_THREADS: the group splits into single-thread
+    shares; stopped and resumed from a shell whose OMP_NUM_THREADS is 2 it ends as the uninterrupted
+    default group does."""
+    expected = min(3, cores())
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    template, cut = str(tmp_path / "cut_s{seed}"), [tmp_path / f"cut_s{s}" for s in (0, 1, 2)]
+    frames = ["--frames", "4000", "--checkpoint-every", "1000"]
+    proc = subprocess.Popen([sys.executable, "-m", "dvfb", *DEFAULTS, "--seeds", "0,1,2", "--run-dir", template,
+                             *frames], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 300
+    while not all(_logged(p) for p in cut):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    os.kill(proc.pid, signal.SIGTERM)
+    _out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    for path in cut:
+        config, meta = (json.loads((path / name).read_text()) for name in ("config.json", "meta.json"))
+        assert config["processes"] == expected and meta["processes"] == expected
+        assert meta["machine"]["torch_threads"] == (1 if expected > 1 else max(1, cores() // 2))
+    resumed = subprocess.run([sys.executable, "-m", "dvfb", *DEFAULTS, "--seeds", "0,1,2", "--run-dir", template,
+                              *frames, "--resume"], capture_output=True, text=True, timeout=600,
+                             env={**env, "OMP_NUM_THREADS": "2"})
+    assert resumed.returncode == 0, resumed.stderr
+    assert json.loads((cut[0] / "meta.json").read_text())["resumes"][-1]["processes"] == expected
+    whole = subprocess.run([sys.executable, "-m", "dvfb", *DEFAULTS, "--seeds", "0,1,2", "--run-dir",
+                            str(tmp_path / "whole_s{seed}"), *frames], capture_output=True, text=True, timeout=600,
+                           env=env)
+    assert whole.returncode == 0, whole.stderr
+    _assert_same_snapshots(cut, [tmp_path / f"whole_s{s}" for s in (0, 1, 2)], 4000)

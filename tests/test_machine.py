@@ -16,7 +16,7 @@ import torch
 from dvfb.cli import build_parser
 from dvfb.runs.machine import cgroup_cpu_quota, cores, default_torch_threads
 from dvfb.runs.directory import RunDir
-from dvfb.workflows.resources import recorded_threads, use_threads
+from dvfb.workflows.resources import use_threads
 from tiny import tiny_flags
 
 
@@ -96,14 +96,16 @@ def test_threads_above_the_cpus_are_capped_with_one_line(monkeypatch, capsys):
 def test_the_threads_a_run_computed_with_are_its_last_resumes_else_its_own_else_its_configs(tmp_path):
     run = RunDir(tmp_path)
     (tmp_path / "meta.json").write_text(json.dumps({"machine": {"torch_threads": 3}}))
-    assert recorded_threads(run) == 3
+    assert run.computed_threads() == 3
     (tmp_path / "meta.json").write_text(json.dumps({"machine": {"torch_threads": 3},
                                                     "resumes": [{"torch_threads": 5}, {"torch_threads": 2}]}))
-    assert recorded_threads(run) == 2
+    assert run.computed_threads() == 2
     (tmp_path / "meta.json").write_text(json.dumps({"machine": {}}))  # a run made before meta.json said
-    assert recorded_threads(run) == 0
+    assert run.computed_threads() == 0
     (tmp_path / "meta.json").write_text("{not json")
-    assert recorded_threads(run) == 0
+    assert run.computed_threads() == 0
+    (tmp_path / "meta.json").write_text(json.dumps({"processes": 2, "resumes": [{"processes": 3}]}))
+    assert run.computed_processes() == 3
 
 
 def test_a_pretraining_asking_for_more_threads_than_cpus_runs_with_the_cpus(tmp_path):

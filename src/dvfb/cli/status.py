@@ -70,6 +70,10 @@ def _print(status: dict, reference=None) -> None:
         print(f"  pre-training: none here; {what}, holding its snapshot after {frames} frames")
     else:
         print(f"  pre-training: {_progress_line(status)}")
+        if status["threads"]:
+            group = (f", in one of the {status['processes']} processes its group was split over"
+                     if status["processes"] > 1 else "")
+            print(f"  computed with {status['threads']} torch thread(s){group} (meta.json; a --resume keeps them)")
     metrics = _metrics_line(status)
     if metrics:
         print(f"  {metrics}")

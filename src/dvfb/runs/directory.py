@@ -19,7 +19,7 @@ import torch
 
 from dvfb.core.version import __version__
 from dvfb.core.config import load_json, save_json, to_dict
-from dvfb.core.errors import ConfigError, RunDirError
+from dvfb.core.errors import ConfigError, DvfbError, RunDirError
 from dvfb.core.files import _TEMP_MARK, _atomic_write, read_json, write_json_atomic
 from dvfb.runs import machine
 
@@ -187,7 +187,47 @@ class RunDir:
         """The contents of meta.json."""
         return read_json(self.meta_path, RunDirError)
 
-    def record_resume(self, command: Sequence[str] | None, step: int) -> None:
+    def computed_threads(self) -> int:
+        """The torch threads the run last computed with: its meta.json's last resume's, else those it
+        was made with, else its config's ``torch_threads`` (runs made before meta.json recorded
+        threads); 0 when nothing says."""
+        try:
+            meta = self.read_meta()
+        except DvfbError:
+            meta = {}
+        meta = meta if isinstance(meta, dict) else {}
+        for record in reversed(meta.get("resumes") or []):
+            threads = record.get("torch_threads") if isinstance(record, dict) else None
+            if isinstance(threads, int) and threads > 0:
+                return threads
+        machine_record = meta.get("machine")
+        made = machine_record.get("torch_threads") if isinstance(machine_record, dict) else None
+        if isinstance(made, int) and made > 0:
+            return made
+        configured = getattr(getattr(self, "config", None), "torch_threads", 0)
+        return configured if isinstance(configured, int) and configured > 0 else 0
+
+    def computed_processes(self) -> int:
+        """The processes of the group the run last computed in (meta.json; 1 when it says nothing)."""
+        try:
+            meta = self.read_meta()
+        except DvfbError:
+            return 1
+        meta = meta if isinstance(meta, dict) else {}
+        for record in [*reversed(meta.get("resumes") or []), meta]:
+            count = record.get("processes") if isinstance(record, dict) else None
+            if isinstance(count, int) and count > 0:
+                return count
+        return 1
+
+    def update_meta(self, **fields: Any) -> None:
+        """Set top-level fields of meta.json (a group's schedule, once its processes are known)."""
+        meta = self.read_meta() if self.meta_path.is_file() else {}
+        if not isinstance(meta, dict):
+            raise RunDirError(f"{self.meta_path} is corrupt: expected a JSON object")
+        write_json_atomic(self.meta_path, {**meta, **fields})
+
+    def record_resume(self, command: Sequence[str] | None, step: int, **fields: Any) -> None:
         """Add a resume to meta.json's ``resumes``: the command that continued the run, the step it
         continued from, when, and the dvfb version and torch threads it ran with (the model card's
         "Made with" lists them after the first command)."""
@@ -197,7 +237,7 @@ class RunDir:
         meta.setdefault("resumes", []).append({
             "command": list(command) if command is not None else None, "step": int(step),
             "resumed": datetime.now(timezone.utc).isoformat(timespec="seconds"), "dvfb_version": __version__,
-            "torch_threads": torch.get_num_threads()})
+            "torch_threads": torch.get_num_threads(), **fields})
         write_json_atomic(self.meta_path, meta)
 
 

@@ -58,9 +58,12 @@ class PretrainConfig:
     torch_threads: int = param(0, "Torch threads of the run's process; 0: OMP_NUM_THREADS when set, else half the CPUs "
                                "this process may use (its affinity and cgroup quota), at least one (README.md, "
                                "\"Threads and progress\").", at_least=0)
-    processes: int = param(1, "Split a group's members (--seeds) over this many processes (at most one per "
+    processes: int = param(0, "Split a group's members (--seeds) over this many processes (at most one per "
                            "member), each training its share as a group of its own; they share --torch-threads (0: "
-                           "the CPUs) equally, at least one thread each (docs/members.md).", at_least=1)
+                           "the CPUs) equally, at least one thread each (docs/members.md). 0: one single-thread "
+                           "process per CPU this process may use, up to one per member, on a CPU (one process on "
+                           "CUDA, or when --torch-threads is given); config.json records the number chosen.",
+                           at_least=0)
     seed_frames: int = param(4000, "Uniform-action steps before the first update.", at_least=0)
     update_every: int = param(2, "One gradient update every this many steps.", at_least=1)
     replay_capacity: int = param(1_000_000, "Replay capacity in transitions.", at_least=1)

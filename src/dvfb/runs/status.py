@@ -71,6 +71,7 @@ def run_status(path: str | os.PathLike) -> dict:
                                 for _, result in run.zeroshot_results()},
                   "finetune": [run_status(child.path) for child in run.finetune_runs()],
                   "exported_from": (run.exported_from() or {}).get("export"),
+                  "threads": run.computed_threads(), "processes": run.computed_processes(),
                   # Made from an exported model (dvfb demo's agent, an EXPORT.eval directory): a
                   # snapshot and nothing trained here.
                   "unpacked": (run.finished_frames() is None and not run.metrics_dir.exists()

@@ -277,10 +277,13 @@ def command(sweep: SweepDir, config: SweepConfig, unit: Unit, torch_threads: int
         runs = [sweep.run_path(c) for c in group]
         resume = any(latest_checkpoint(r) is not None for r in runs)
         again = [] if resume or not any(r.exists() for r in runs) else ["--overwrite"]
+        # The group's CPUs as single-thread shares, one per CPU up to one per member, as dvfb
+        # pretrain --seeds does by default (docs/sweeps.md, "Threads"); never more threads than CPUs.
+        processes = min(len(group), max(1, torch_threads))
         return ["pretrain", "--agent", cell.agent, "--domain", cell.domain,
                 "--seeds", ",".join(str(c.seed) for c in group), "--preset", config.preset,
                 "--run-dir", str(sweep.runs_dir / spec.group_run_template(cell)), "--no-progress",
-                "--torch-threads", str(torch_threads), *spec.pretrain_flags(cell),
+                "--torch-threads", str(torch_threads), "--processes", str(processes), *spec.pretrain_flags(cell),
                 *(["--resume"] if resume else again)]
     if unit.phase == "pretrain":
         return ["pretrain", "--agent", cell.agent, "--domain", cell.domain, "--seed", str(cell.seed),

@@ -46,6 +46,7 @@ from dvfb.data import ReplayBuffer, physics_columns, read_dataset, read_info
 from dvfb.data.datasets import check_same_data
 from dvfb.nets.execution import resolve_device
 from dvfb.nets.members import member_slice
+from dvfb.runs.machine import cores
 from dvfb.runs import RunDir, RunLock, save_snapshot
 from dvfb.runs.layout import PretrainRun, snapshot_name
 from dvfb.runs.migrations import migrate_training_state
@@ -59,7 +60,7 @@ from dvfb.training.rollout import Lane, rollout
 from dvfb.training.seeding import seed_everything
 from dvfb.workflows.group import Group, TrainingSteps, check_lockstep
 from dvfb.workflows.pretrain_evaluation import PretrainEvaluation
-from dvfb.workflows.processes import run_in_processes, shares, threads_per_process
+from dvfb.workflows.processes import group_schedule, run_in_processes, shares
 from dvfb.workflows.resources import (check_memory, check_replay, check_task_in_domain, learner_state_bytes,
                                       resume_threads, setup_torch)
 from dvfb.workflows.session import RunSession
@@ -102,19 +103,26 @@ def pretrain(config: PretrainConfig, run_dir: str | Path | Sequence[str | Path],
             RunDir.check_new(path, overwrite)
     base, trained_task, dataset_info = _checked(replace(config, seed=seeds[0]) if many else config, paths, resume,
                                                 overwrite)
-    if resume:
+    stored = PretrainRun.open(paths[0]) if resume else None
+    if stored is not None:
         # A resume computes with the threads the run computed with, whatever the shell's
         # OMP_NUM_THREADS, and keeps its recorded setting unless --torch-threads asks otherwise.
-        stored = PretrainRun.open(paths[0])
         resume_threads(stored, base.torch_threads)
+        asked_threads = base.torch_threads
         if not base.torch_threads:
             base = replace(base, torch_threads=stored.config.torch_threads)
+        if not base.processes:  # not asked: the schedule the group ran with
+            base = replace(base, processes=stored.config.processes)
         device = resolve_device(base.device)
     else:
         device = setup_torch(base)
+    processes, child_threads = group_schedule(len(paths), base.processes, base.torch_threads, device.type == "cuda")
+    if stored is not None and processes > 1:
+        child_threads = _resumed_share_threads(stored, processes, child_threads, asked_threads)
+    base = replace(base, processes=processes)  # config.json records the schedule the group runs with
     configs = [replace(base, seed=seed) for seed in seeds] if many else [base]
     what = f"pretrain {base.agent} {base.domain}" + (f" ({len(paths)} members)" if many else "")
-    split = shares(len(paths), base.processes) if many else [range(1)]
+    split = shares(len(paths), processes) if many else [range(1)]
     if len(split) > 1:  # the parent checks that the whole group fits, its children build the members
         _member_parts_checked(configs[:1], trained_task, device, dataset_info, what, len(paths), len(split))
         parts = dataset = None
@@ -127,7 +135,8 @@ def pretrain(config: PretrainConfig, run_dir: str | Path | Sequence[str | Path],
             for lock in locks:  # a member in use: the directories locked so far are removed again
                 stack.enter_context(lock)
             if len(split) > 1:
-                _run_split(configs, paths, split, trained_task, dataset_info, resume, overwrite, progress, command)
+                _run_split(configs, paths, split, trained_task, dataset_info, resume, overwrite, progress, command,
+                           child_threads)
                 runs = [PretrainRun(path, c) for path, c in zip(paths, configs)]
             else:
                 runs = _run(configs, paths, parts, resume, overwrite, command, dataset, dataset_info, progress, what,
@@ -154,9 +163,29 @@ def _member_parts_checked(configs, trained_task, device, dataset_info, what, mem
     return parts
 
 
-def _run_split(configs, paths, split, trained_task, dataset_info, resume, overwrite, progress, command):
-    """The group's members in ``len(split)`` child processes, one share each (docs/members.md, "A group
-    over several processes"); this process holds their locks."""
+def _resumed_share_threads(stored: PretrainRun, processes: int, threads: int, asked: int) -> int:
+    """The threads of each share of a resumed split group: those it computed with (its members'
+    meta.json), unless ``--torch-threads`` asked otherwise; on a machine with fewer CPUs than the
+    schedule takes, one line says what changes."""
+    if not asked:
+        threads = stored.computed_threads() or threads
+    limit = cores()
+    if processes * threads <= limit:
+        return threads
+    if threads > 1:
+        fitted = max(1, limit // processes)
+        notify(f"[threads] the group ran as {processes} processes of {threads} torch threads, but this process may "
+               f"use {limit} CPU(s); resuming with {fitted} thread(s) each: its numbers may differ from an "
+               "uninterrupted run's")
+        return fitted
+    notify(f"[threads] the group ran as {processes} single-thread processes, but this process may use {limit} CPU(s); "
+           "resuming with the same schedule: the same numbers, more slowly")
+    return threads
+
+
+def _run_split(configs, paths, split, trained_task, dataset_info, resume, overwrite, progress, command, threads):
+    """The group's members in ``len(split)`` child processes of ``threads`` torch threads, one share
+    each (docs/members.md, "A group over several processes"); this process holds their locks."""
     base = configs[0]
     calls, names = [], []
     for k, share in enumerate(split):
@@ -166,7 +195,7 @@ def _run_split(configs, paths, split, trained_task, dataset_info, resume, overwr
         calls.append(([to_dict(configs[i]) for i in share], [paths[i] for i in share], trained_task, dataset_info, resume,
                       overwrite, progress if k == 0 else False, command, what))
         names.append(f"seeds {seeds}")
-    run_in_processes(_run_share, calls, threads_per_process(base.torch_threads, len(split)), names,
+    run_in_processes(_run_share, calls, threads, names,
                      agree=lambda finished: _check_finished([f for share in finished for f in share]))
 
 
@@ -405,8 +434,11 @@ class PretrainSession(RunSession):
                     from exc
             # Only now, with the checkpoint loaded, may the run's config change (a larger --frames).
             self.run.save_config(config)
-            self.run.record_resume(self.command, self.step)
+            self.run.record_resume(self.command, self.step, processes=config.processes)
             notify(f"[pretrain] resuming {self.run.path} from step {self.step} (of {config.frames})")
+        if state is None:
+            # The schedule a group's member was made with (its threads: meta.json's machine record).
+            self.run.update_meta(processes=config.processes)
         if offline:
             self.run.write_trained_on(self.fingerprint)  # what an offline zero-shot checks its data against
         self.start_logging(self.resume, agent.nonfinite_hint)

@@ -45,6 +45,26 @@ def shares(count: int, processes: int) -> list[range]:
     return out
 
 
+def group_schedule(members: int, processes: int, torch_threads: int, cuda: bool = False) -> tuple[int, int]:
+    """How a group of ``members`` runs (README.md, "Threads and progress"): ``(processes, torch threads of
+    each)``, the threads 0 for a group in this process (it takes a run's threads).
+
+    ``processes`` given (> 0): that many shares, at most one per member, sharing ``torch_threads`` (0:
+    the CPUs) equally. Not given (0, the default): on a CUDA device, or with ``torch_threads`` given,
+    the group runs in this process; otherwise one single-thread share per CPU this process may use,
+    up to one per member. Single threads, because a share of several OpenMP threads crawls when
+    another process takes one of its cores, while single-thread processes only share the cores; and
+    on a CPU with few cores two single-thread processes multiply faster than one on two threads
+    (bench/README.md, "The default schedule of a group")."""
+    if processes > 0:
+        count = min(processes, members)
+        return count, threads_per_process(torch_threads, count) if count > 1 else 0
+    if cuda or torch_threads > 0 or members == 1:
+        return 1, 0
+    count = min(members, cores())
+    return count, 1 if count > 1 else 0
+
+
 def threads_per_process(torch_threads: int, processes: int) -> int:
     """The torch threads of each child: an equal part (at least one) of the command's ``torch_threads``,
     or of the CPUs when it is 0."""

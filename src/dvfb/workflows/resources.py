@@ -14,7 +14,7 @@ import torch
 
 from dvfb import envs
 from dvfb.agents import get_spec
-from dvfb.core.errors import ConfigError, DvfbError
+from dvfb.core.errors import ConfigError
 from dvfb.nets.execution import resolve_device
 from dvfb.runs.export import evaluation_run, is_export, remove_evaluation_run
 from dvfb.runs.directory import RunDir
@@ -61,32 +61,13 @@ def fit_threads(threads: int, asked: str | None = None) -> int:
     return limit
 
 
-def recorded_threads(run: RunDir) -> int:
-    """The torch threads a run last computed with: its meta.json's last resume's, else those it was
-    made with, else its config's ``torch_threads`` (runs made before meta.json recorded threads);
-    0 when nothing says."""
-    try:
-        meta = run.read_meta()
-    except DvfbError:
-        meta = {}
-    meta = meta if isinstance(meta, dict) else {}
-    for record in reversed(meta.get("resumes") or []):
-        if isinstance(record, dict) and isinstance(record.get("torch_threads"), int) and record["torch_threads"] > 0:
-            return record["torch_threads"]
-    made = (meta.get("machine") or {}).get("torch_threads") if isinstance(meta.get("machine"), dict) else None
-    if isinstance(made, int) and made > 0:
-        return made
-    configured = getattr(getattr(run, "config", None), "torch_threads", 0)
-    return configured if isinstance(configured, int) and configured > 0 else 0
-
-
 def resume_threads(run: RunDir, requested: int | None) -> int:
     """Set the threads of a resume and return them (README.md, "Threads and progress"): a resume
-    computes with the threads the run computed with (:func:`recorded_threads`), so that it ends
+    computes with the threads the run computed with (:meth:`~dvfb.runs.directory.RunDir.computed_threads`), so that it ends
     bit-identical to an uninterrupted run, whatever ``OMP_NUM_THREADS`` the resuming shell has.
     ``requested`` (a positive ``--torch-threads``) wins, and one line says that the numbers may
     then differ; so does a machine with fewer CPUs than the run used."""
-    recorded = recorded_threads(run)
+    recorded = run.computed_threads()
     if requested:
         threads = fit_threads(requested, f"--torch-threads {requested}")
         if recorded and threads != recorded:
