@@ -52,7 +52,7 @@ from importlib import resources
 
 from dvfb.agents import AGENTS
 from dvfb.analysis.common import RETURN, SUCCESS, AnalysisError, Runs, Score, method_name, split_budget_label
-from dvfb.analysis.tables import AVERAGE, Cell, Table
+from dvfb.analysis.tables import AVERAGE, Summary, Table
 from dvfb.core.config import canonical_key, field_type, merge, parse_text
 from dvfb.core.errors import DvfbError
 from dvfb.runs.presets import preset_config
@@ -432,7 +432,7 @@ class CellComparison:
     cell: PaperCell
     status: str  # compared, incomplete, not run or paper only
     method: str = ""  # the report's column
-    report: Cell | None = None
+    report: Summary | None = None
     scale: str = ""  # the runs behind the column against the paper's budget (scale_marker)
     detail: str = ""  # for incomplete: what the report has
 
@@ -457,7 +457,7 @@ def _columns(method: PaperMethod, presets: Sequence[str], domain: str, kind: str
             and any(table.cell(domain, task, column) is not None for task in tasks)]
 
 
-def _domain_average(table: Table, domain: str, label: str) -> tuple[Cell | None, str]:
+def _domain_average(table: Table, domain: str, label: str) -> tuple[Summary | None, str]:
     """The column's average on the domain, or None and what it lacks."""
     cell = table.cell(domain, AVERAGE, label)
     if cell is not None:
@@ -533,7 +533,7 @@ def _all_domains_row(cell, method, table, kind, presets, budgets, cells) -> Cell
     if len(averages) < len(domains):
         return CellComparison(cell, INCOMPLETE, name, None, scale_marker(budget, kind),
                               f"{len(averages)} of {len(domains)} domain averages")
-    value = Cell(float(sum(a.mean for a in averages) / len(averages)), float("nan"), min(a.n for a in averages))
+    value = Summary(float(sum(a.mean for a in averages) / len(averages)), float("nan"), min(a.n for a in averages))
     return CellComparison(cell, COMPARED, name, value, scale_marker(budget, kind))
 
 

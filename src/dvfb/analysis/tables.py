@@ -44,8 +44,9 @@ AVERAGE = "average"
 
 
 @dataclass(frozen=True)
-class Cell:
-    """Mean and spread of one table cell; ``n`` is the number of seeds."""
+class Summary:
+    """The seeds' mean and spread of one entry of a table (a task or an average, a method); ``n`` is
+    the number of seeds. (A sweep's grid cell is :class:`dvfb.sweep.spec.Cell`.)"""
 
     mean: float
     std: float  # ddof = 1; NaN when n == 1
@@ -59,13 +60,13 @@ class Cell:
         return self.se if kind == "se" else self.std
 
 
-def summarise(values: Sequence[float]) -> Cell:
+def summarise(values: Sequence[float]) -> Summary:
     """Mean and sample std (ddof=1) of per-seed values."""
     array = np.asarray(values, dtype=float)
     if array.size == 0:
         raise ValueError("no values to summarise")
     std = float(np.std(array, ddof=STD_DDOF)) if array.size > 1 else float("nan")
-    return Cell(float(array.mean()), std, int(array.size))
+    return Summary(float(array.mean()), std, int(array.size))
 
 
 @dataclass
@@ -75,15 +76,15 @@ class Table:
     title: str
     rows: list[tuple[str, str]]
     columns: list[str]
-    cells: dict[tuple[str, str], Cell]  # (task or f"{domain}/average", method) -> Cell
-    normalised_by: dict[str, dict[tuple[str, str], Cell]]  # normaliser name -> cells (docs/reports.md)
+    cells: dict[tuple[str, str], Summary]  # (task or f"{domain}/average", method) -> Summary
+    normalised_by: dict[str, dict[tuple[str, str], Summary]]  # normaliser name -> cells (docs/reports.md)
     spread: str = "std"
     digits: int = 1  # decimals shown in markdown (success rates: 2)
     normalisers: dict[str, Normaliser] = dataclasses.field(default_factory=dict)
     episodes: dict[str, list[int]] = dataclasses.field(default_factory=dict)  # method -> episodes per result
 
     @property
-    def normalised(self) -> dict[tuple[str, str], Cell]:
+    def normalised(self) -> dict[tuple[str, str], Summary]:
         """The expert-normalised cells (the paper's normalised scores)."""
         return self.normalised_by.get("expert", {})
 
@@ -91,10 +92,10 @@ class Table:
     def row_key(domain: str, task: str) -> str:
         return f"{domain}/{AVERAGE}" if task == AVERAGE else task
 
-    def cell(self, domain: str, task: str, method: str, normalised: bool | str = False) -> Cell | None:
+    def cell(self, domain: str, task: str, method: str, normalised: bool | str = False) -> Summary | None:
         return self.cells_of(normalised).get((self.row_key(domain, task), method))
 
-    def cells_of(self, normalised: bool | str = False) -> dict[tuple[str, str], Cell]:
+    def cells_of(self, normalised: bool | str = False) -> dict[tuple[str, str], Summary]:
         """Raw cells (False), expert-normalised ones (True) or those of a named normaliser."""
         if normalised is False:
             return self.cells
@@ -131,8 +132,8 @@ def build_table(scores: Sequence[Score], title: str, spread: str = "std", digits
             episodes[score.method].add(score.episodes)
     columns = sorted({s.method for s in scores}, key=method_sort_key)
     rows: list[tuple[str, str]] = []
-    cells: dict[tuple[str, str], Cell] = {}
-    normalised: dict[str, dict[tuple[str, str], Cell]] = {name: {} for name in normalisers}
+    cells: dict[tuple[str, str], Summary] = {}
+    normalised: dict[str, dict[tuple[str, str], Summary]] = {name: {} for name in normalisers}
     for domain, tasks in _domains_and_tasks(scores):
         rows.extend((domain, task) for task in tasks)
         rows.append((domain, AVERAGE))
@@ -155,21 +156,21 @@ def build_table(scores: Sequence[Score], title: str, spread: str = "std", digits
                  {m: sorted(e) for m, e in episodes.items()})
 
 
-def _average(tasks: list[str], by_seed: dict[str, dict], transform) -> Cell:
+def _average(tasks: list[str], by_seed: dict[str, dict], transform) -> Summary:
     """Mean of the task means; spread over the per-seed averages of seeds present on every task."""
     task_means = [float(np.mean([transform(task, v) for v in by_seed[task].values()])) for task in tasks]
     complete = set.intersection(*(set(by_seed[task]) for task in tasks))
     per_seed = [float(np.mean([transform(task, by_seed[task][seed]) for task in tasks]))
                 for seed in sorted(complete, key=repr)]
     std = float(np.std(per_seed, ddof=STD_DDOF)) if len(per_seed) > 1 else float("nan")
-    return Cell(float(np.mean(task_means)), std, len(per_seed))
+    return Summary(float(np.mean(task_means)), std, len(per_seed))
 
 
 # ---------------------------------------------------------------------------------------------
 # formatting
 
 
-def format_cell(cell: Cell | None, spread: str, digits: int = 1) -> str:
+def format_cell(cell: Summary | None, spread: str, digits: int = 1) -> str:
     if cell is None:
         return GAP
     value = cell.spread(spread)
