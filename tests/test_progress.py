@@ -8,6 +8,8 @@ import json
 import os
 import signal
 import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -130,3 +132,13 @@ def test_a_signal_to_a_group_names_every_members_directory(tmp_path):
             checkpoints.after_step(1500, mid_episode=True)
     assert saved == [True]  # one mid-episode checkpoint before stopping
     assert f"(runs {members[0]}, {members[1]})" in str(info.value) and "(run runs)" not in str(info.value)
+
+
+def test_status_into_a_reader_that_stopped_reading_ends_quietly(dvfb_maze_run):
+    # dvfb status RUN | head: the reader closes the pipe before dvfb writes; no "error: Broken pipe".
+    proc = subprocess.Popen([sys.executable, "-m", "dvfb", "status", str(dvfb_maze_run)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()
+    _out, err = proc.communicate()
+    assert proc.returncode == 128 + signal.SIGPIPE, err
+    assert err == ""
