@@ -16,6 +16,7 @@ process (a Python loop), and its rate is set against the idle default's:
 
     python bench/group_schedule.py                                   # dvfb, fb; N = 2, 4, 5
     python bench/group_schedule.py --agents dvfb --members 4 --busy  # the issue's row
+    python bench/group_schedule.py --members 2,5 --no-all-schedules  # the default and the separate runs only
 
 Writes ``bench/results/group_schedule.json``. Run it on an idle machine: every figure is a wall clock.
 """
@@ -61,6 +62,8 @@ def row(agent: str, n: int, args, root: Path) -> dict:
         f"separate, {cpus} at a time x 1 thread": (
             [_command(agent, args, root / f"separate_{s}", [s], ["--torch-threads", "1"]) for s in seeds], cpus),
     }
+    if not args.all_schedules:  # the default against the separate runs only
+        schedules = {name: v for name, v in schedules.items() if name == "default" or name.startswith("separate")}
     walls = {}
     for name, (commands, at_once) in schedules.items():
         walls[name] = timed(commands, at_once, None)
@@ -106,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=2500, help="frames per member")
     parser.add_argument("--seed-frames", type=int, default=1000, help="uniform-action frames per member")
     parser.add_argument("--busy", action="store_true", help="also the default group beside one busy process")
+    parser.add_argument("--all-schedules", action=argparse.BooleanOptionalAction, default=True,
+                        help="--torch-threads and --processes too (--no-all-schedules: the default and the separate runs)")
     parser.add_argument("--output", type=Path, default=RESULTS, help="where the JSON goes")
     args = parser.parse_args(argv)
     rows = []

@@ -167,6 +167,21 @@ def test_a_verdict_reads_the_newest_evaluation_against_the_nearest_snapshots_ban
     assert other.where == "no band for fb on walker_walk at the small preset"
 
 
+def test_a_reference_barely_above_random_flags_no_run_as_not_learning():
+    # The reference's lowest seed less than the random policy's spread above its best episode (DVFB
+    # on walker_walk at 25k: 52.6 against 29.5-43.1; here 50 against 20-40): a run within
+    # the random returns is below the band, not "not learning".
+    from dvfb.analysis.bands import Band, Bands, RandomBand, verdicts
+
+    random = RandomBand("walker", WALK, 3, 30.0, 20.0, 40.0)
+    for low, flagged in ((50.0, False), (60.0, True)):
+        band = Band("dvfb", "walker", "small", 100000, WALK, 25000, 3, 80.0, low, 100.0)
+        (verdict,) = verdicts("dvfb", "walker", "small", [{"step": 25000, "task": WALK, "return": 35.0}],
+                              Bands((band,), (random,), "test"))
+        assert verdict.where == "below"
+        assert verdict.warning.startswith("not learning" if flagged else "below every reference seed")
+
+
 def test_status_gives_the_verdict_and_draws_the_evaluations_over_the_band(dvfb_maze_run, tmp_path, capsys):
     from tiny import copy_run, make_pretrain_run
 

@@ -32,6 +32,12 @@ PACKAGED = "reference_bands.json"  # in dvfb/data: docs/results/cpu_100k's bands
 # A band speaks for evaluations within this fraction of its snapshot's frames (25k: 12.5k-37.5k);
 # further away the run is at a budget the reference did not measure.
 NEAREST = 0.5
+# "Not learning" needs a reference that had left the random policy's returns clearly: its lowest seed
+# at least this many times the random policy's spread (max - min) above the random policy's best
+# episode. Three seeds at a first snapshot barely above random (DVFB on walker_walk at 25k: 52.6
+# against 43.1) say little about a fourth: a healthy run of the same method scored 17.3 there
+# (docs/health.md, "How the verdict was checked").
+CLEAR_OF_RANDOM = 1.0
 
 
 @dataclass(frozen=True)
@@ -155,6 +161,11 @@ def _nearest(bands: list[Band], step: int) -> Band | None:
     return band if abs(band.frames - step) <= NEAREST * band.frames else None
 
 
+def clear_of_random(band: Band, random: RandomBand) -> bool:
+    """Whether every reference seed had left the random policy's returns clearly (:data:`CLEAR_OF_RANDOM`)."""
+    return band.min - random.max >= CLEAR_OF_RANDOM * (random.max - random.min) and band.min > random.max
+
+
 def verdicts(method: str, domain: str, preset: str, records: list[dict], bands: Bands) -> list[Verdict]:
     """One :class:`Verdict` per task of the run's newest evaluation (``records``: its eval.jsonl rows)."""
     if not records:
@@ -183,7 +194,7 @@ def verdicts(method: str, domain: str, preset: str, records: list[dict], bands: 
             continue
         where = "inside" if band.min <= value <= band.max else ("above" if value > band.max else "below")
         warning = None
-        if random is not None and band.min > random.max and value <= random.max:
+        if random is not None and clear_of_random(band, random) and value <= random.max:
             warning = (f"not learning: still within the random policy's returns ({random.min:.1f}-{random.max:.1f}) "
                        f"where every reference run had left them by {band.frames:,} frames; check the run's "
                        "options against its preset (learning rates, losses switched off) and its train records")
