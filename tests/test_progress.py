@@ -142,3 +142,16 @@ def test_status_into_a_reader_that_stopped_reading_ends_quietly(dvfb_maze_run):
     _out, err = proc.communicate()
     assert proc.returncode == 128 + signal.SIGPIPE, err
     assert err == ""
+
+
+def test_a_finished_run_resumed_with_more_frames_is_not_reported_finished(dvfb_maze_run, tmp_path, capsys):
+    # dvfb pretrain ... --frames 4000 --resume on a finished 2,000-frame run saves the larger budget
+    # first; until it finishes again its old summary must not make dvfb status say "finished".
+    from tiny import copy_run
+
+    run = copy_run(dvfb_maze_run, tmp_path)
+    config = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**config, "frames": 4000}))
+    assert main(["status", str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "pre-training: stopped, 2000/4000 frames (50%)" in out, out

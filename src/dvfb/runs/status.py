@@ -35,8 +35,11 @@ def _progress(run, target: int, finished: int | None) -> dict:
     record = last_metric_record(run, "train") or {}
     checkpoint = _checkpoint_step(run)
     holder = RunLock.holder(run.path)
-    frames = finished if finished is not None else max(record.get("step", 0), checkpoint or 0)
-    if finished is not None:
+    # A finished run resumed with a larger --frames keeps its old summary until it finishes again:
+    # it is finished only when its summary reaches the budget its config now asks for.
+    done = finished is not None and finished >= target
+    frames = finished if done else max(record.get("step", 0), checkpoint or 0, finished or 0)
+    if done:
         state = "finished"
     elif holder is not None:
         state = "running"
