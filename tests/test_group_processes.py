@@ -202,7 +202,9 @@ def test_a_killed_share_stops_the_group_in_one_line_and_the_group_resumes_exactl
     children = [pid for pid in _children(proc.pid) if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text()]
     (victim,) = [pid for pid in children if _holds_a_file_in(pid, cut[1])]
     deadline = time.monotonic() + 300
-    while not list((cut[1] / "checkpoints").glob("resume_*.pt")):  # it has something to resume from
+    # It has something to resume from once `latest` names a checkpoint: the checkpoint file is
+    # complete an instant before the pointer is written, and a kill in between leaves nothing to resume.
+    while not (cut[1] / "checkpoints" / "latest").exists():
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
         time.sleep(0.05)
     os.kill(victim, signal.SIGKILL)  # what the out-of-memory killer sends: no checkpoint, no word

@@ -34,6 +34,7 @@ episode it finished: what ``dvfb dataset export`` reads.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from pathlib import Path
 from typing import Sequence
@@ -119,7 +120,9 @@ def pretrain(config: PretrainConfig, run_dir: str | Path | Sequence[str | Path],
     processes, child_threads = group_schedule(len(paths), base.processes, base.torch_threads, device.type == "cuda")
     if stored is not None and processes > 1:
         child_threads = _resumed_share_threads(stored, processes, child_threads, asked_threads)
-    base = replace(base, processes=processes)  # config.json records the schedule the group runs with
+    # config.json records the schedule the group runs with. The schedule is computed here, so the
+    # config is not validated again: a config handed to pretrain() runs as it was given.
+    base = dataclasses.replace(base, processes=processes)
     configs = [replace(base, seed=seed) for seed in seeds] if many else [base]
     what = f"pretrain {base.agent} {base.domain}" + (f" ({len(paths)} members)" if many else "")
     split = shares(len(paths), processes) if many else [range(1)]
