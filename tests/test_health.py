@@ -148,7 +148,7 @@ def test_bands_are_made_from_a_studys_results_by_a_command(tmp_path, capsys):
     (20000, 70.0, "inside", None),
     (30000, 150.0, "above", None),
     (25000, 50.0, "below", "below every reference seed"),
-    (25000, 35.0, "below", "not learning: still within the random policy's returns (20.0-40.0) where every "
+    (25000, 35.0, "below", "not learning: no better than the random policy's returns (20.0-40.0) where every "
                            "reference run had left them by 25,000 frames"),
     (25000, float("nan"), "not finite", "the networks have diverged"),
     (5000, 70.0, "no band at 5,000 frames (the dvfb bands are at 25,000, 100,000 frames)", None),
@@ -204,7 +204,7 @@ def test_status_gives_the_verdict_and_draws_the_evaluations_over_the_band(dvfb_m
     assert main(["status", str(run), "--bands", str(tmp_path / "b.json"), "--plot", str(plot)]) == 0
     out = capsys.readouterr().out
     assert (f"  health: {task} 0.5 at 2,000 frames: below the dvfb band at 2,000 frames (10.0-30.0, mean 20.0, 3 seeds, "
-            "small preset) -- not learning: still within the random policy's returns (0.0-1.0)") in out
+            "small preset) -- not learning: no better than the random policy's returns (0.0-1.0)") in out
     assert plot.stat().st_size > 0 and f"evaluations over the reference bands: {plot}" in out
     assert main(["status", str(run), "--plot", str(plot)]) == 2  # never replaced without --overwrite
     assert "exists; pass --overwrite" in capsys.readouterr().err

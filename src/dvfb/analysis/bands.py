@@ -195,7 +195,7 @@ def verdicts(method: str, domain: str, preset: str, records: list[dict], bands: 
         where = "inside" if band.min <= value <= band.max else ("above" if value > band.max else "below")
         warning = None
         if random is not None and clear_of_random(band, random) and value <= random.max:
-            warning = (f"not learning: still within the random policy's returns ({random.min:.1f}-{random.max:.1f}) "
+            warning = (f"not learning: no better than the random policy's returns ({random.min:.1f}-{random.max:.1f}) "
                        f"where every reference run had left them by {band.frames:,} frames; check the run's "
                        "options against its preset (learning rates, losses switched off) and its train records")
         elif where == "below":
